@@ -1,0 +1,26 @@
+# hexjax: `make demo` sets everything up and runs the main job on a small CPU default; `make test` runs the tests.
+PY ?= python3.11
+VENV := .venv
+BIN := $(VENV)/bin
+
+.PHONY: setup demo test bench clean
+
+$(BIN)/hexjax: pyproject.toml constraints.txt
+	test -x $(BIN)/python || $(PY) -m venv $(VENV) || python3 -m venv $(VENV)
+	$(BIN)/python -m pip install -q --upgrade pip
+	$(BIN)/python -m pip install -q -c constraints.txt -e '.[test]'
+	touch $(BIN)/hexjax
+
+setup: $(BIN)/hexjax
+
+demo: setup
+	$(BIN)/hexjax evaluate --gait tripod --distance 1.0 --batch 8 --json out/evaluate_tripod.json
+
+test: setup
+	$(BIN)/python -m pytest -q tests
+
+bench: setup
+	$(BIN)/hexjax bench --json out/bench_cpu.json
+
+clean:
+	rm -rf $(VENV) out

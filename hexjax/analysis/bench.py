@@ -1,0 +1,103 @@
+"""`hexjax bench`: throughput of the full rollout (controller + sensors + physics) at several batch sizes,
+with MuJoCo C's single-thread speed on the same model as a reference ratio."""
+
+from __future__ import annotations
+
+import dataclasses
+import platform
+import time
+from typing import Dict, Sequence
+
+import jax
+import mujoco
+import numpy as np
+from tqdm.auto import tqdm
+
+from hexjax.analysis.evaluate import pad_terrain
+from hexjax.control.gait import GaitController
+from hexjax.mjcf import PhysicsConfig
+from hexjax.robot import get_robot
+from hexjax.sim.model import assign_slots, env_model, sim_model
+from hexjax.sim.rollout import RolloutConfig, rollout
+from hexjax.terrain import get_terrain, sample
+
+
+def mujoco_c_steps_per_s(robot: str, terrain: str, physics: PhysicsConfig, seconds: float = 2.0) -> float:
+    """Single-thread mj_step rate on the same MJCF, slots placed on a sampled terrain, gait running."""
+    spec = get_robot(robot)
+    sm = sim_model(spec, physics)
+    m = mujoco.MjModel(sm.mj_model)
+    t = jax.tree_util.tree_map(lambda x: x[0], sample(get_terrain(terrain), jax.random.PRNGKey(0), 1))
+    from hexjax.robot import neutral_feet_body
+    mx = env_model(sm, t, *assign_slots(sm, t, jax.numpy.asarray(neutral_feet_body(spec)[:, :2]), jax.numpy.zeros(2)))
+    m.geom_pos[:] = np.asarray(mx.geom_pos)
+    m.geom_size[:] = np.asarray(mx.geom_size)
+    d = mujoco.MjData(m)
+    mujoco.mj_resetDataKeyframe(m, d, 0)
+    ctrl = GaitController(spec)
+    p = ctrl.default_params()
+    step = jax.jit(lambda s: ctrl.step(p, s, None))
+    st = ctrl.init(p, None)
+    n_sub = int(round(ctrl.dt / physics.timestep))
+    targets = []
+    for _ in range(200):
+        st, a = step(st)
+        targets.append(np.asarray(a))
+    n, t0 = 0, time.perf_counter()
+    while time.perf_counter() - t0 < seconds:
+        d.ctrl[:] = targets[(n // n_sub) % len(targets)]
+        mujoco.mj_step(m, d)
+        n += 1
+    return n / (time.perf_counter() - t0)
+
+
+def bench(robot: str = "luneckas2020", batches: Sequence[int] = (16, 64, 256), sim_seconds: float = 2.0,
+          terrains: Sequence[str] = ("flat", "high-large"), gait: str = "tripod",
+          physics: PhysicsConfig = PhysicsConfig(), repeats: int = 2, progress: bool = True) -> Dict:
+    """Times `rollout` at each batch size on each terrain. env-steps = envs x physics steps."""
+    for b in batches:
+        if not isinstance(b, int) or b < 1:
+            raise ValueError(f"batches entry {b!r}: must be an integer >= 1")
+    spec = get_robot(robot)
+    ctrl = GaitController(spec, gait=gait)
+    params = ctrl.default_params()
+    cfg = RolloutConfig()
+    n_phys = int(round((sim_seconds + cfg.settle_time) / physics.timestep))
+    rows = []
+    jobs = [(t, b) for t in terrains for b in batches]
+    for tname, b in tqdm(jobs, desc="bench", disable=not progress):
+        tspec = get_terrain(tname)
+        terr = sample(tspec, jax.random.PRNGKey(0), b)
+        t0 = time.perf_counter()
+        out = rollout(spec, terr, ctrl, params, sim_seconds, jax.random.PRNGKey(1), physics=physics, config=cfg)
+        jax.block_until_ready(out.end_pose)
+        first = time.perf_counter() - t0
+        compile_s = rollout.last_compile_s
+        best = np.inf
+        for r in range(repeats):
+            t0 = time.perf_counter()
+            out = rollout(spec, terr, ctrl, params, sim_seconds, jax.random.PRNGKey(2 + r), physics=physics, config=cfg)
+            jax.block_until_ready(out.end_pose)
+            best = min(best, time.perf_counter() - t0)
+        rows.append(dict(terrain=tname, batch=b, compile_s=round(compile_s, 2), first_call_s=round(first, 2),
+                         run_s=round(best, 4), env_steps_per_s=round(b * n_phys / best, 1),
+                         nan=int(np.asarray(out.nan).sum()), fell=int(np.asarray(out.fell).sum())))
+    ref = {t: mujoco_c_steps_per_s(robot, t, physics) for t in terrains}
+    for r in rows:
+        r["mujoco_c_1thread_steps_per_s"] = round(ref[r["terrain"]], 1)
+        r["ratio_vs_mujoco_c_1thread"] = round(r["env_steps_per_s"] / ref[r["terrain"]], 3)
+    dev = jax.devices()[0]
+    return dict(robot=robot, gait=gait, sim_seconds=sim_seconds, physics_steps_per_env=n_phys,
+                physics=dataclasses.asdict(physics), backend=jax.default_backend(),
+                device=f"{dev.platform}:{getattr(dev, 'device_kind', '')}", n_devices=len(jax.devices()),
+                host=platform.node(), cpu_count=__import__("os").cpu_count(), jax=jax.__version__,
+                mujoco=mujoco.__version__, date=time.strftime("%Y-%m-%d"), rows=rows)
+
+
+def format_bench(res: Dict) -> str:
+    head = f"{'terrain':<11} {'batch':>7} {'compile s':>9} {'env-steps/s':>12} {'MuJoCo C 1thr':>13} {'ratio':>6}"
+    lines = [f"{res['device']} ({res['backend']}, {res['n_devices']} device(s)), {res['sim_seconds']} s simulated", head]
+    for r in res["rows"]:
+        lines.append(f"{r['terrain']:<11} {r['batch']:7d} {r['compile_s']:9.1f} {r['env_steps_per_s']:12.0f} "
+                     f"{r['mujoco_c_1thread_steps_per_s']:13.0f} {r['ratio_vs_mujoco_c_1thread']:6.2f}")
+    return "\n".join(lines)

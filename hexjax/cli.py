@@ -1,0 +1,107 @@
+"""The `hexjax` command: evaluate, bench, terrain."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+
+
+def _write_json(path: str, obj) -> None:
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    with open(path, "w") as f:
+        json.dump(obj, f, indent=2, default=float)
+    print(f"wrote {path}")
+
+
+def _cmd_evaluate(a) -> int:
+    from hexjax.analysis.evaluate import DEFAULT_CATEGORIES, evaluate, format_table
+    cats = tuple(a.categories.split(",")) if a.categories else DEFAULT_CATEGORIES
+    res = evaluate(robot=a.robot, gait=a.gait, distance=a.distance, batch=a.batch, seed=a.seed,
+                   categories=cats, step_height=a.step_height / 100.0)
+    c = res["config"]
+    print(f"\n{c['robot']} {c['gait']} gait, {c['distance_m']:g} m ({c['gait_cycles']} cycles, "
+          f"{c['duration_s']:.1f} s), {c['batch']} envs per category, seed {c['seed']}, no tactile method")
+    print(format_table(res))
+    if a.json:
+        _write_json(a.json, res)
+    return 0
+
+
+def _cmd_bench(a) -> int:
+    from hexjax.analysis.bench import bench, format_bench
+    batches = [int(x) for x in a.batches.split(",")]
+    res = bench(robot=a.robot, batches=batches, sim_seconds=a.seconds, terrains=a.terrains.split(","))
+    print(format_bench(res))
+    if a.json:
+        _write_json(a.json, res)
+    return 0
+
+
+def _cmd_terrain(a) -> int:
+    import jax
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+    from hexjax.terrain import get_terrain, heightmap, sample
+    spec = get_terrain(a.preset)
+    t = jax.tree_util.tree_map(lambda x: x[0], sample(spec, jax.random.PRNGKey(a.seed), 1))
+    xr = (-0.2, spec.start_x + spec.length + 0.1)
+    yr = (-0.5 * spec.width - 0.05, 0.5 * spec.width + 0.05)
+    h = heightmap(t, xr, yr, res=0.0025)
+    fig, ax = plt.subplots(figsize=(10, 10 * (yr[1] - yr[0]) / (xr[1] - xr[0]) + 1.2))
+    im = ax.imshow(100 * h.T, origin="lower", extent=(*xr, *yr), cmap="terrain", aspect="equal")
+    fig.colorbar(im, ax=ax, label="height (cm)", shrink=0.8)
+    ax.add_patch(plt.Rectangle((-0.1, -0.05), 0.2, 0.1, fill=False, ec="k", lw=1.5))
+    ax.set_xlabel("x (m), walking direction")
+    ax.set_ylabel("y (m)")
+    n = int(np.asarray(t.box_valid).sum())
+    ax.set_title(f"terrain {a.preset}, seed {a.seed}: {n} boxes, ground at {100 * float(t.ground_z):.1f} cm "
+                 f"(robot torso outline at the start)")
+    fig.tight_layout()
+    fig.savefig(a.png, dpi=110)
+    print(f"wrote {a.png}")
+    return 0
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="hexjax", description="Batched MJX hexapods on randomised terrains.")
+    sub = p.add_subparsers(dest="cmd", required=True)
+
+    e = sub.add_parser("evaluate", help="seed-000 gait over flat + the four obstacle categories")
+    e.add_argument("--robot", default="luneckas2020")
+    e.add_argument("--gait", default="tripod", choices=["tripod", "wave"])
+    e.add_argument("--distance", type=float, default=1.0, help="m (default 1)")
+    e.add_argument("--batch", type=int, default=16, help="envs per category (default 16)")
+    e.add_argument("--seed", type=int, default=0)
+    e.add_argument("--step-height", type=float, default=3.0, help="h_i, cm (default 3)")
+    e.add_argument("--categories", default="", help="comma list of terrain presets (default flat + seed-000 four)")
+    e.add_argument("--json", default="", help="write the numbers here")
+    e.set_defaults(fn=_cmd_evaluate)
+
+    b = sub.add_parser("bench", help="env-steps/s of the full rollout at several batch sizes")
+    b.add_argument("--robot", default="luneckas2020")
+    b.add_argument("--batches", default="16,64,256")
+    b.add_argument("--terrains", default="flat,high-large")
+    b.add_argument("--seconds", type=float, default=2.0, help="simulated seconds per rollout")
+    b.add_argument("--json", default="", help="write the numbers here")
+    b.set_defaults(fn=_cmd_bench)
+
+    t = sub.add_parser("terrain", help="draw a sampled terrain")
+    t.add_argument("--preset", default="high-large")
+    t.add_argument("--seed", type=int, default=0)
+    t.add_argument("--png", default="terrain.png")
+    t.set_defaults(fn=_cmd_terrain)
+
+    a = p.parse_args(argv)
+    try:
+        return a.fn(a)
+    except ValueError as err:
+        print(f"hexjax {a.cmd}: error: {err}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,206 @@
+"""Host-side model building, per-env terrain slots and sensor extraction for the MJX rollout.
+
+Terrain culling. MJX evaluates one collision function per declared geom pair every step, so a terrain of
+hundreds of boxes cannot be declared as geoms. Instead each leg owns `slots_per_leg` box geoms (and the
+torso `torso_slots`); every control step `assign_slots` moves them onto the terrain boxes nearest that
+leg's foot, so the pair count stays 13 + 2 * 6 * slots_per_leg + torso_slots whatever the terrain size.
+Only geom_pos / geom_size of the slot geoms differ per env (a batch axis on those two fields only).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import logging
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from flax import struct
+
+from hexjax.mjcf import PARKED_Z, PhysicsConfig, build_mjcf
+from hexjax.robot import LEG_NAMES, N_LEGS, RobotSpec
+from hexjax.terrain import Terrain
+
+logging.getLogger("mujoco.mjx").setLevel(logging.ERROR)  # its optional-warp import notice
+from mujoco import mjx  # noqa: E402
+
+SLOT_REACH = 0.12  # m: terrain boxes farther than this from a foot are not given a slot
+
+
+@struct.dataclass
+class Obs:
+    """What a controller sees each control step (one env; add a leading axis when batched).
+
+    qpos (18,) rad, qvel (18,) rad/s      joint angles and rates, leg order LF..RH x (coxa, femur, tibia)
+    torso_pos (3,) m, torso_quat (4,)    world frame (w, x, y, z)
+    foot_force (6, 3) N                  contact force on each foot from the terrain, world frame
+    foot_contact (6,) bool               normal foot force above `SensorConfig.contact_threshold`
+    tactile_force (6,) N                 normal force on each shin's front tactile pad
+    tactile (6,) bool                    tactile pad on/off (force above `tactile_threshold`)
+    time () s                            since the start of the rollout
+    """
+
+    qpos: jax.Array
+    qvel: jax.Array
+    torso_pos: jax.Array
+    torso_quat: jax.Array
+    foot_force: jax.Array
+    foot_contact: jax.Array
+    tactile_force: jax.Array
+    tactile: jax.Array
+    time: jax.Array
+
+
+@dataclasses.dataclass(frozen=True)
+class SensorConfig:
+    contact_threshold: float = 0.5  # N
+    tactile_threshold: float = 0.3  # N
+
+
+class SimModel:
+    """MuJoCo / MJX models of one robot with terrain slots, plus static index maps. Built once on the host."""
+
+    def __init__(self, robot: RobotSpec, physics: PhysicsConfig):
+        self.robot, self.physics = robot, physics
+        self.xml = build_mjcf(robot, physics)
+        self.mj_model = mujoco.MjModel.from_xml_string(self.xml)
+        self.mjx_model = mjx.put_model(self.mj_model)
+        m = self.mj_model
+        gid = lambda n: mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, n)
+        self.ground_geom = gid("ground")
+        self.foot_geoms = np.array([gid(f"{n}_foot") for n in LEG_NAMES])
+        self.pad_geoms = np.array([gid(f"{n}_pad") for n in LEG_NAMES])
+        self.torso_geom = gid("torso")
+        k = physics.slots_per_leg
+        self.leg_slot_geoms = np.array([[gid(f"slot_{n}_{j}") for j in range(k)] for n in LEG_NAMES],
+                                       dtype=int).reshape(N_LEGS, k)
+        self.torso_slot_geoms = np.array([gid(f"slot_torso_{j}") for j in range(physics.torso_slots)], dtype=int)
+        self.foot_sites = np.array([mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, f"{n}_foot") for n in LEG_NAMES])
+        self.torso_body = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, "torso")
+        key = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_KEY, "stance")
+        self.qpos0 = np.array(m.key_qpos[key])
+        self.ctrl0 = np.array(m.key_ctrl[key])
+        # Static contact -> (foot, pad) membership. MJX lays contacts out by pair group, each group
+        # repeated by its collision function's contact count; that order is fixed at trace time, so
+        # the map holds for every step of every env (tests/test_sim.py checks it against mjx.forward).
+        d = mjx.make_data(m)
+        geoms = contact_geoms(self.mjx_model, d)
+        self.ncon = geoms.shape[0]
+        self.contact_foot = np.stack([(geoms == g).any(1) for g in self.foot_geoms], 1).astype(np.float32)
+        self.contact_pad = np.stack([(geoms == g).any(1) for g in self.pad_geoms], 1).astype(np.float32)
+        dims = np.asarray(d._impl.contact.dim) if hasattr(d._impl.contact, "dim") else None
+        if dims is not None and not np.all(dims == 3):
+            raise RuntimeError("hexjax expects condim 3 on every contact pair")
+        self.n_pairs = m.npair
+
+    def init_data(self, torso_xy_yaw):
+        """mjx.Data in the neutral stance at (x, y, yaw) (3,) on flat ground."""
+        x, y, yaw = torso_xy_yaw[0], torso_xy_yaw[1], torso_xy_yaw[2]
+        qpos = jnp.asarray(self.qpos0)
+        quat = jnp.stack([jnp.cos(yaw / 2), 0.0 * yaw, 0.0 * yaw, jnp.sin(yaw / 2)])
+        qpos = qpos.at[0].set(x).at[1].set(y).at[3:7].set(quat)
+        d = mjx.make_data(self.mjx_model)
+        return d.replace(qpos=qpos, ctrl=jnp.asarray(self.ctrl0))
+
+
+def contact_geoms(mx, d) -> np.ndarray:
+    """(ncon, 2) geom ids of MJX's contact slots, in the order mjx.forward fills them."""
+    from mujoco.mjx._src import collision_driver as cd
+    groups = cd._contact_groups(mx, d)
+    return np.concatenate([np.repeat(np.asarray(c.geom), cd._COLLISION_FUNC[k.types].ncon, axis=0)
+                           for k, c in groups.items()])
+
+
+@functools.lru_cache(maxsize=16)
+def sim_model(robot: RobotSpec, physics: PhysicsConfig) -> SimModel:
+    """Cached `SimModel` (specs are frozen dataclasses, so they key the cache)."""
+    return SimModel(robot, physics)
+
+
+def _box_xy_distance(points, terrain: Terrain):
+    """Horizontal distance from points (Q, 2) to every box footprint (M,): (Q, M) m, inf where invalid."""
+    d = jnp.abs(points[:, None, :] - terrain.box_pos[None, :, :2]) - terrain.box_half[None, :, :2]
+    dist = jnp.linalg.norm(jnp.maximum(d, 0.0), axis=-1)
+    return jnp.where(terrain.box_valid[None, :], dist, jnp.inf)
+
+
+def assign_slots(sm: SimModel, terrain: Terrain, foot_xy, torso_xy):
+    """Slot geom positions and sizes for one env: the `slots_per_leg` boxes nearest each foot and the
+    `torso_slots` nearest the torso centre; unused slots are parked below the ground.
+
+    foot_xy (6, 2), torso_xy (2,) -> (slot_pos (S, 3), slot_size (S, 3)), S = 6 * k + torso_slots."""
+    k, kt = sm.physics.slots_per_leg, sm.physics.torso_slots
+    groups = []
+    if k:
+        groups.append((foot_xy, k))
+    if kt:
+        groups.append((torso_xy[None], kt))
+    pos_out, size_out = [], []
+    for pts, kk in groups:
+        dist = _box_xy_distance(pts, terrain)
+        kk_eff = min(kk, dist.shape[1])
+        neg, idx = jax.lax.top_k(-dist, kk_eff)
+        reach = SLOT_REACH if pts.shape[0] == N_LEGS else 0.5 * sm.robot.body_length + SLOT_REACH
+        use = -neg <= reach
+        pos = jnp.where(use[..., None], terrain.box_pos[idx], jnp.array([0.0, 0.0, PARKED_Z]))
+        size = jnp.where(use[..., None], terrain.box_half[idx], 0.01)
+        if kk_eff < kk:  # fewer terrain boxes than slots: park the rest
+            pad = kk - kk_eff
+            pos = jnp.concatenate([pos, jnp.broadcast_to(jnp.array([0.0, 0.0, PARKED_Z]), pos.shape[:-2] + (pad, 3))], -2)
+            size = jnp.concatenate([size, jnp.full(size.shape[:-2] + (pad, 3), 0.01)], -2)
+        pos_out.append(pos.reshape(-1, 3))
+        size_out.append(size.reshape(-1, 3))
+    if not pos_out:
+        return jnp.zeros((0, 3)), jnp.zeros((0, 3))
+    return jnp.concatenate(pos_out), jnp.concatenate(size_out)
+
+
+def slot_geom_ids(sm: SimModel) -> np.ndarray:
+    return np.concatenate([sm.leg_slot_geoms.reshape(-1), sm.torso_slot_geoms])
+
+
+def env_model(sm: SimModel, terrain: Terrain, slot_pos, slot_size):
+    """The mjx.Model of one env: the shared model with its ground height and slot geoms set."""
+    m = sm.mjx_model
+    ids = slot_geom_ids(sm)
+    geom_pos = m.geom_pos.at[sm.ground_geom, 2].set(terrain.ground_z)
+    geom_size = m.geom_size
+    if ids.size:
+        geom_pos = geom_pos.at[ids].set(slot_pos)
+        geom_size = geom_size.at[ids].set(slot_size)
+    return m.replace(geom_pos=geom_pos, geom_size=geom_size)
+
+
+def batch_model(sm: SimModel, terrain: Terrain):
+    """Playground-style batching: (model with a leading batch axis on geom_pos / geom_size only,
+    in_axes pytree for jax.vmap). Slots start at the boxes nearest the neutral stance at the origin."""
+    from hexjax.robot import neutral_feet_body
+    feet = jnp.asarray(neutral_feet_body(sm.robot)[:, :2])
+
+    def one(t):
+        return env_model(sm, t, *assign_slots(sm, t, feet, jnp.zeros(2)))
+
+    batched = jax.vmap(one)(terrain)
+    in_axes = jax.tree_util.tree_map(lambda _: None, sm.mjx_model)
+    in_axes = in_axes.replace(geom_pos=0, geom_size=0)
+    shared = sm.mjx_model.replace(geom_pos=batched.geom_pos, geom_size=batched.geom_size)
+    return shared, in_axes
+
+
+def read_obs(sm: SimModel, sensors: SensorConfig, m, d) -> Obs:
+    """Sensor readings of one env (see `Obs`). Contact forces come from the constraint solver's
+    efc_force (pyramidal cone decoded as in MuJoCo's mj_contactForce)."""
+    force, idx = mjx._src.support.contact_force_dim(m, d, 3)
+    frames = d._impl.contact.frame[idx]  # (n, 3, 3): rows normal, tangent1, tangent2
+    world = jnp.einsum("ni,nij->nj", force[:, :3], frames)
+    # contact force acts on geom2 (robot geom in every pair) from geom1 (terrain), along the normal
+    foot_mask, pad_mask = jnp.asarray(sm.contact_foot[idx]), jnp.asarray(sm.contact_pad[idx])
+    foot_force = foot_mask.T @ world  # (6, 3)
+    foot_normal = foot_mask.T @ force[:, 0]
+    pad_normal = pad_mask.T @ force[:, 0]
+    return Obs(
+        qpos=d.qpos[7:], qvel=d.qvel[6:], torso_pos=d.qpos[:3], torso_quat=d.qpos[3:7],
+        foot_force=foot_force, foot_contact=foot_normal > sensors.contact_threshold,
+        tactile_force=pad_normal, tactile=pad_normal > sensors.tactile_threshold, time=d.time)

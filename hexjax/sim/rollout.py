@@ -1,0 +1,240 @@
+"""The batched rollout: lax.scan over control steps (mjx.step x substeps inside), vmap over envs, jit,
+optionally sharded over a device mesh along the batch axis."""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+import time
+from typing import Any, Optional
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
+
+from hexjax.mjcf import PhysicsConfig
+from hexjax.robot import RobotSpec
+from hexjax.sim.model import SensorConfig, assign_slots, env_model, mjx, read_obs, sim_model
+from hexjax.terrain import Terrain, TerrainSpec
+
+
+@dataclasses.dataclass(frozen=True)
+class RolloutConfig:
+    """Static rollout settings (changing one recompiles)."""
+
+    settle_time: float = 0.3  # s of standing before the controller starts; start pose is taken after it
+    yaw_noise: float = math.radians(3.0)  # initial heading drawn from U(-yaw_noise, yaw_noise), rad
+    fall_tilt: float = math.radians(60.0)  # torso tilt beyond this counts as a fall, rad
+    fall_height: float = 0.03  # torso centre closer than this to the ground plane counts as a fall, m
+    record: bool = False  # keep a per-control-step torso trace (B, T, 4): x, y, z, yaw
+
+    def validate(self) -> None:
+        if self.settle_time < 0:
+            raise ValueError(f"rollout.settle_time={self.settle_time!r}: must be >= 0")
+        if not 0 <= self.yaw_noise < math.pi:
+            raise ValueError(f"rollout.yaw_noise={self.yaw_noise!r}: must be in [0, pi)")
+        if not 0 < self.fall_tilt <= math.pi:
+            raise ValueError(f"rollout.fall_tilt={self.fall_tilt!r}: must be in (0, pi]")
+
+
+@struct.dataclass
+class Summary:
+    """Per-env outcome of a rollout (leading axis B on every field). Poses are (x m, y m, yaw rad).
+
+    start_pose / end_pose (B, 3)  torso pose after settling / at the end
+    fell (B,) bool, fall_time (B,) s (inf if none)   torso tilt or height left the safe range
+    nan (B,) bool                 the state went non-finite; the env was frozen at its last finite state
+    energy (B,) J                 integral of |torque * joint rate| over all joints
+    path_length (B,) m            horizontal distance travelled by the torso
+    max_tilt (B,) rad, min_height (B,) m (torso centre above the ground plane)
+    tactile_steps (B, 6)          control steps with each leg's tactile pad on
+    trace (B, T, 4) or None       x, y, z, yaw per control step when RolloutConfig.record
+    """
+
+    start_pose: jax.Array
+    end_pose: jax.Array
+    fell: jax.Array
+    fall_time: jax.Array
+    nan: jax.Array
+    energy: jax.Array
+    path_length: jax.Array
+    max_tilt: jax.Array
+    min_height: jax.Array
+    tactile_steps: jax.Array
+    trace: Optional[jax.Array] = None
+
+
+def _yaw(q):
+    w, x, y, z = q[0], q[1], q[2], q[3]
+    return jnp.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+
+
+def _tilt(q):
+    """Angle between the torso z axis and world z, rad."""
+    w, x, y, z = q[0], q[1], q[2], q[3]
+    up_z = 1 - 2 * (x * x + y * y)
+    return jnp.arccos(jnp.clip(up_z / jnp.maximum(jnp.sum(q * q), 1e-9), -1.0, 1.0))
+
+
+def _substeps(physics: PhysicsConfig, ctrl_dt: float) -> int:
+    n = ctrl_dt / physics.timestep
+    if abs(n - round(n)) > 1e-6 or round(n) < 1:
+        raise ValueError(f"controller.dt={ctrl_dt!r} must be a whole multiple of physics.timestep={physics.timestep!r}")
+    return int(round(n))
+
+
+@functools.lru_cache(maxsize=32)
+def _compiled(robot: RobotSpec, physics: PhysicsConfig, sensors: SensorConfig, controller: Any,
+              cfg: RolloutConfig, n_ctrl: int, params_batched: bool):
+    sm = sim_model(robot, physics)
+    n_sub = _substeps(physics, controller.dt)
+    n_settle = int(round(cfg.settle_time / controller.dt))
+    n_total = n_settle + n_ctrl
+    ctrl0 = jnp.asarray(sm.ctrl0)
+    foot_sites = jnp.asarray(sm.foot_sites)
+    dt = physics.timestep
+
+    def single(m_shared, params, terrain: Terrain, key):
+        k_yaw, k_ctrl = jax.random.split(key)
+        yaw0 = jax.random.uniform(k_yaw, (), minval=-cfg.yaw_noise, maxval=cfg.yaw_noise)
+        d0 = sm.init_data(jnp.stack([0.0, 0.0, yaw0]))
+        cstate0 = controller.init(params, k_ctrl)
+
+        def control_step(carry, i):
+            d, cstate, acc = carry
+            foot_xy = d.site_xpos[foot_sites, :2]
+            slot_pos, slot_size = assign_slots(sm, terrain, foot_xy, d.qpos[:2])
+            m = env_model(sm, terrain, slot_pos, slot_size)
+            obs = read_obs(sm, sensors, m, d)
+            new_cstate, action = controller.step(params, cstate, obs)
+            walking = i >= n_settle
+            action = jnp.where(walking, action, ctrl0)
+            cstate = jax.tree_util.tree_map(lambda a, b: jnp.where(walking, a, b), new_cstate, cstate)
+            d = d.replace(ctrl=action)
+
+            def sub(dd, _):
+                dd = mjx.step(m, dd)
+                power = jnp.sum(jnp.abs(dd.actuator_force * dd.qvel[6:]))
+                return dd, power
+
+            d_new, power = jax.lax.scan(sub, d, None, length=n_sub)
+            finite = jnp.all(jnp.isfinite(d_new.qpos)) & jnp.all(jnp.isfinite(d_new.qvel))
+            d_new = jax.tree_util.tree_map(lambda a, b: jnp.where(finite, a, b), d_new, d)
+            q = d_new.qpos[3:7]
+            height = d_new.qpos[2] - terrain.ground_z
+            tilt = _tilt(q)
+            fallen_now = walking & ((tilt > cfg.fall_tilt) | (height < cfg.fall_height))
+            t_now = (i + 1 - n_settle) * controller.dt
+            step_xy = jnp.linalg.norm(d_new.qpos[:2] - d.qpos[:2])
+            pose = jnp.stack([d_new.qpos[0], d_new.qpos[1], _yaw(q)])
+            acc = dict(
+                start_pose=jnp.where(i == n_settle - 1, pose, acc["start_pose"]),
+                fell=acc["fell"] | fallen_now,
+                fall_time=jnp.where(fallen_now & ~acc["fell"], t_now, acc["fall_time"]),
+                nan=acc["nan"] | ~finite,
+                energy=acc["energy"] + jnp.where(walking & finite, jnp.sum(power) * dt, 0.0),
+                path_length=acc["path_length"] + jnp.where(walking & finite, step_xy, 0.0),
+                max_tilt=jnp.maximum(acc["max_tilt"], jnp.where(walking, tilt, 0.0)),
+                min_height=jnp.minimum(acc["min_height"], jnp.where(walking, height, jnp.inf)),
+                tactile_steps=acc["tactile_steps"] + (walking & obs.tactile).astype(jnp.int32),
+            )
+            out = jnp.concatenate([d_new.qpos[:3], _yaw(q)[None]]) if cfg.record else None
+            return (d_new, cstate, acc), out
+
+        start = jnp.stack([d0.qpos[0], d0.qpos[1], yaw0])
+        acc0 = dict(start_pose=start, fell=jnp.asarray(False), fall_time=jnp.asarray(jnp.inf),
+                    nan=jnp.asarray(False), energy=jnp.asarray(0.0), path_length=jnp.asarray(0.0),
+                    max_tilt=jnp.asarray(0.0), min_height=jnp.asarray(jnp.inf),
+                    tactile_steps=jnp.zeros(6, jnp.int32))
+        # forward once so site positions exist before the first slot assignment
+        d0 = mjx.forward(m_shared, d0)
+        (d, _, acc), trace = jax.lax.scan(control_step, (d0, cstate0, acc0), jnp.arange(n_total))
+        end = jnp.stack([d.qpos[0], d.qpos[1], _yaw(d.qpos[3:7])])
+        if cfg.record:
+            trace = trace[n_settle:]
+        return Summary(end_pose=end, trace=trace, **acc)
+
+    def batched(m_shared, params, terrain, keys):
+        return jax.vmap(single, in_axes=(None, 0 if params_batched else None, 0, 0))(m_shared, params, terrain, keys)
+
+    return sm, _AotFunction(jax.jit(batched))
+
+
+class _AotFunction:
+    """A jitted function compiled ahead of time per input signature, recording compile seconds."""
+
+    def __init__(self, jitted):
+        self.jitted = jitted
+        self.executables = {}
+        self.last_compile_s = 0.0
+
+    @staticmethod
+    def _signature(args):
+        leaves, tree = jax.tree_util.tree_flatten(args)
+        return tree, tuple((np.shape(x), str(getattr(x, "dtype", type(x))),
+                            str(getattr(x, "sharding", ""))) for x in leaves)
+
+    def __call__(self, *args):
+        sig = self._signature(args)
+        exe = self.executables.get(sig)
+        if exe is None:
+            t0 = time.perf_counter()
+            exe = self.jitted.lower(*args).compile()
+            self.last_compile_s = time.perf_counter() - t0
+            self.executables[sig] = exe
+        else:
+            self.last_compile_s = 0.0
+        return exe(*args)
+
+
+def rollout(robot: RobotSpec, terrain: Terrain, controller, params, duration: float, key, *,
+            physics: PhysicsConfig = PhysicsConfig(), sensors: SensorConfig = SensorConfig(),
+            config: RolloutConfig = RolloutConfig(), params_batched: bool = False,
+            mesh: Optional[Mesh] = None) -> Summary:
+    """Roll out a batch of hexapods, one per terrain of `terrain` (leading axis B).
+
+    robot: RobotSpec; terrain: batched Terrain from `hexjax.terrain.sample`; controller: an object
+    following `hexjax.control.base.Controller`; params: its params pytree (shared, or batched with
+    leading axis B when params_batched); duration: seconds of control after settling; key: PRNG key
+    (initial heading noise and controller init per env); mesh: optional `jax.sharding.Mesh` with an
+    axis named 'batch' to shard the envs over several devices. Returns a `Summary` with leading axis B.
+    All inputs are checked on the host before anything is traced."""
+    robot.validate(); physics.validate(); config.validate()
+    if not hasattr(terrain, "box_pos") or np.ndim(terrain.box_pos) != 3:
+        raise ValueError("terrain: expected a batched Terrain (box_pos of shape (B, M, 3)); use terrain.sample")
+    b = int(terrain.box_pos.shape[0])
+    if b < 1:
+        raise ValueError(f"terrain batch size={b}: must be >= 1")
+    if not (isinstance(duration, (int, float)) and math.isfinite(duration) and duration > 0):
+        raise ValueError(f"duration={duration!r}: must be a finite number of seconds > 0")
+    if hasattr(controller, "validate_params"):
+        controller.validate_params(params)
+    n_ctrl = int(math.ceil(duration / controller.dt - 1e-9))
+    sm, fn = _compiled(robot, physics, sensors, controller, config, n_ctrl, params_batched)
+    keys = jax.random.split(key, b)
+    if mesh is not None:
+        if "batch" not in mesh.axis_names:
+            raise ValueError(f"mesh.axis_names={mesh.axis_names!r}: need an axis named 'batch'")
+        n_dev = mesh.shape["batch"]
+        if b % n_dev:
+            raise ValueError(f"terrain batch size={b} must be a multiple of the mesh's {n_dev} 'batch' devices")
+        shard = NamedSharding(mesh, P("batch"))
+        terrain = jax.device_put(terrain, shard)
+        keys = jax.device_put(keys, shard)
+        if params_batched:
+            params = jax.device_put(params, shard)
+    out = fn(sm.mjx_model, params, terrain, keys)
+    rollout.last_compile_s = fn.last_compile_s
+    return out
+
+
+rollout.last_compile_s = 0.0
+
+
+def make_mesh(devices=None) -> Mesh:
+    """A 1-D mesh named 'batch' over the given (default: all visible) devices."""
+    devs = np.asarray(devices if devices is not None else jax.devices())
+    return Mesh(devs.reshape(-1), ("batch",))

@@ -1,0 +1,108 @@
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from hexjax.analysis.metrics import goal_errors
+from hexjax.control.gait import GaitController
+from hexjax.mjcf import PhysicsConfig
+from hexjax.robot import luneckas2020
+from hexjax.sim.model import SimModel, contact_geoms, mjx
+from hexjax.sim.rollout import RolloutConfig, make_mesh, rollout
+from hexjax.terrain import get_terrain, sample
+
+FLAT = PhysicsConfig(slots_per_leg=0, torso_slots=0)
+
+
+@pytest.mark.parametrize("gait", ["tripod", "wave"])
+def test_flat_walk_straight_1m(gait):
+    """Acceptance: 1 m on flat ground, 64 envs with random initial yaw, both gaits: |dx|, |dy| within a few
+    cm (Luneckas 2020 Table 1 calibration: (1-3, 1-6) cm), no falls, no NaN."""
+    spec = luneckas2020()
+    c = GaitController(spec, gait=gait)
+    p = c.default_params()
+    n, dur = c.duration_for(1.0, p)
+    c = dataclasses.replace(c, n_cycles=n)
+    terr = sample(get_terrain("flat"), jax.random.PRNGKey(0), 64)
+    s = rollout(spec, terr, c, p, dur, jax.random.PRNGKey(1), physics=FLAT, config=RolloutConfig(yaw_noise=0.05))
+    e = goal_errors(s, 1.0)
+    yaw0 = np.asarray(s.start_pose[:, 2])
+    assert np.ptp(yaw0) > 0.03  # the initial headings really were randomised
+    assert not np.asarray(s.nan).any() and not np.asarray(s.fell).any()
+    assert np.abs(np.asarray(e.dx)).max() < 0.04, np.asarray(e.dx)  # m
+    assert np.abs(np.asarray(e.dy)).max() < 0.04, np.asarray(e.dy)
+    assert np.degrees(np.abs(np.asarray(e.dalpha))).max() < 3.0
+    assert np.asarray(e.success).all()
+
+
+class _NanAfter:
+    """A controller that commands NaN joint targets after `t_bad` s: the rollout must flag, not spread, it."""
+
+    def __init__(self, base, t_bad):
+        self.base, self.t_bad, self.dt = base, t_bad, base.dt
+
+    def __hash__(self):
+        return hash(("nan", self.base, self.t_bad))
+
+    def __eq__(self, o):
+        return isinstance(o, _NanAfter) and (o.base, o.t_bad) == (self.base, self.t_bad)
+
+    def default_params(self):
+        return self.base.default_params()
+
+    def init(self, params, key):
+        return self.base.init(params, key)
+
+    def step(self, params, state, obs):
+        st, a = self.base.step(params, state, obs)
+        bad = state.t > self.t_bad
+        return st, jnp.where(bad, jnp.nan, a)
+
+
+def test_nan_is_flagged_and_contained():
+    spec = luneckas2020()
+    c = _NanAfter(GaitController(spec), 0.5)
+    terr = sample(get_terrain("flat"), jax.random.PRNGKey(0), 2)
+    s = rollout(spec, terr, c, c.default_params(), 1.0, jax.random.PRNGKey(1), physics=FLAT)
+    assert np.asarray(s.nan).all()
+    assert np.all(np.isfinite(np.asarray(s.end_pose))) and np.all(np.isfinite(np.asarray(s.energy)))
+
+
+def test_sharded_rollout_matches_unsharded():
+    devs = jax.devices()
+    assert len(devs) >= 2, "conftest asks XLA for two host devices"
+    spec = luneckas2020()
+    c = GaitController(spec)
+    p = c.default_params()
+    terr = sample(get_terrain("flat"), jax.random.PRNGKey(4), 4)
+    a = rollout(spec, terr, c, p, 1.0, jax.random.PRNGKey(5), physics=FLAT)
+    b = rollout(spec, terr, c, p, 1.0, jax.random.PRNGKey(5), physics=FLAT, mesh=make_mesh(devs[:2]))
+    assert len(b.end_pose.sharding.device_set) == 2
+    np.testing.assert_allclose(np.asarray(a.end_pose), np.asarray(b.end_pose), atol=1e-4)
+
+
+def test_contact_map_matches_mjx_forward():
+    sm = SimModel(luneckas2020(), PhysicsConfig(slots_per_leg=1, torso_slots=1))
+    d = mjx.make_data(sm.mj_model)
+    ref = np.asarray(jax.jit(mjx.forward)(sm.mjx_model, d)._impl.contact.geom)
+    np.testing.assert_array_equal(contact_geoms(sm.mjx_model, d), ref)
+
+
+def test_invalid_rollout_inputs_raise_before_tracing():
+    spec = luneckas2020()
+    c = GaitController(spec)
+    p = c.default_params()
+    terr = sample(get_terrain("flat"), jax.random.PRNGKey(0), 2)
+    with pytest.raises(ValueError, match="duration"):
+        rollout(spec, terr, c, p, -1.0, jax.random.PRNGKey(0))
+    with pytest.raises(ValueError, match="batched Terrain"):
+        rollout(spec, jax.tree_util.tree_map(lambda x: x[0], terr), c, p, 1.0, jax.random.PRNGKey(0))
+    with pytest.raises(ValueError, match="step_height"):
+        rollout(spec, terr, c, p.replace(step_height=jnp.asarray(0.5)), 1.0, jax.random.PRNGKey(0))
+    with pytest.raises(ValueError, match="multiple"):
+        rollout(spec, sample(get_terrain("flat"), jax.random.PRNGKey(0), 3), c, p, 1.0, jax.random.PRNGKey(0),
+                physics=FLAT, mesh=make_mesh(jax.devices()[:2]))
+    with pytest.raises(ValueError, match="timestep"):
+        rollout(spec, terr, c, p, 1.0, jax.random.PRNGKey(0), physics=PhysicsConfig(timestep=0.03))
