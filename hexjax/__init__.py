@@ -2,14 +2,15 @@
 
 import os as _os
 
-# XLA's CPU runtime can wedge its Eigen thread pool on the large vmapped rollout graph: the process sits
-# at 0 % CPU inside block_until_ready forever (seen here twice on 2 cores, jax 0.10.2; the same hang is
-# reported upstream for vmap graphs, cured by this flag). Set before jax initialises its CPU client;
-# HEXJAX_KEEP_XLA_FLAGS=1 leaves XLA_FLAGS untouched.
+# On obstacle terrain (convex box collisions inside the scanned, vmapped step) XLA:CPU's concurrency-
+# optimized scheduler left every worker thread waiting for work and the process idle in
+# block_until_ready forever: 3 of 5 runs on 2 cores with jax 0.10.2. Neither async dispatch off,
+# single-threaded Eigen, nor replacing lax.top_k cured it; this flag did. It must be set before jax
+# creates its CPU client; HEXJAX_KEEP_XLA_FLAGS=1 leaves XLA_FLAGS untouched.
 if not _os.environ.get("HEXJAX_KEEP_XLA_FLAGS"):
     _flags = _os.environ.get("XLA_FLAGS", "")
-    if "xla_cpu_multi_thread_eigen" not in _flags:
-        _os.environ["XLA_FLAGS"] = (_flags + " --xla_cpu_multi_thread_eigen=false").strip()
+    if "xla_cpu_enable_concurrency_optimized_scheduler" not in _flags:
+        _os.environ["XLA_FLAGS"] = (_flags + " --xla_cpu_enable_concurrency_optimized_scheduler=false").strip()
 
 from hexjax.control.gait import GAITS, GaitController, GaitParams  # noqa: E402
 from hexjax.mjcf import PhysicsConfig, build_mjcf  # noqa: E402

@@ -59,7 +59,7 @@ def test_contact_pairs_only_terrain_against_feet_pads_torso():
         assert b == "torso" or b.endswith("_foot") or b.endswith("_pad")
         if a.startswith("slot_") and b != "torso":
             assert a.split("_")[1] == b.split("_")[0]  # a leg's slots touch only that leg
-    assert m.npair == 13 + 2 * 6 * 2 + 2
+    assert m.npair == 7 + 2 * 6 * 2 + 2
 
 
 def test_tactile_pad_is_in_front_of_each_shin():

@@ -26,7 +26,7 @@ def mujoco_c_steps_per_s(robot: str, terrain: str, physics: PhysicsConfig, secon
     """Single-thread mj_step rate on the same MJCF, slots placed on a sampled terrain, gait running."""
     spec = get_robot(robot)
     sm = sim_model(spec, physics)
-    m = mujoco.MjModel(sm.mj_model)
+    m = mujoco.MjModel.from_xml_string(sm.xml)
     t = jax.tree_util.tree_map(lambda x: x[0], sample(get_terrain(terrain), jax.random.PRNGKey(0), 1))
     from hexjax.robot import neutral_feet_body
     mx = env_model(sm, t, *assign_slots(sm, t, jax.numpy.asarray(neutral_feet_body(spec)[:, :2]), jax.numpy.zeros(2)))
@@ -82,6 +82,8 @@ def bench(robot: str = "luneckas2020", batches: Sequence[int] = (16, 64, 256), s
         rows.append(dict(terrain=tname, batch=b, compile_s=round(compile_s, 2), first_call_s=round(first, 2),
                          run_s=round(best, 4), env_steps_per_s=round(b * n_phys / best, 1),
                          nan=int(np.asarray(out.nan).sum()), fell=int(np.asarray(out.fell).sum())))
+        if progress:
+            tqdm.write(f"{tname} B={b}: compile {compile_s:.1f} s, {rows[-1]['env_steps_per_s']:.0f} env-steps/s")
     ref = {t: mujoco_c_steps_per_s(robot, t, physics) for t in terrains}
     for r in rows:
         r["mujoco_c_1thread_steps_per_s"] = round(ref[r["terrain"]], 1)

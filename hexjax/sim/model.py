@@ -3,7 +3,7 @@
 Terrain culling. MJX evaluates one collision function per declared geom pair every step, so a terrain of
 hundreds of boxes cannot be declared as geoms. Instead each leg owns `slots_per_leg` box geoms (and the
 torso `torso_slots`); every control step `assign_slots` moves them onto the terrain boxes nearest that
-leg's foot, so the pair count stays 13 + 2 * 6 * slots_per_leg + torso_slots whatever the terrain size.
+leg's foot, so the pair count stays 7 + 2 * 6 * slots_per_leg + torso_slots whatever the terrain size.
 Only geom_pos / geom_size of the slot geoms differ per env (a batch axis on those two fields only).
 """
 
@@ -126,6 +126,18 @@ def _box_xy_distance(points, terrain: Terrain):
     return jnp.where(terrain.box_valid[None, :], dist, jnp.inf)
 
 
+def _k_smallest(x, k: int):
+    """(values, indices) of the k smallest entries along the last axis, ascending, by k argmin passes
+    (k <= 4 here, so cheaper than a sort and lowers to plain reductions on every backend)."""
+    vals, idxs = [], []
+    for _ in range(k):
+        i = jnp.argmin(x, axis=-1)
+        vals.append(jnp.take_along_axis(x, i[..., None], -1)[..., 0])
+        idxs.append(i)
+        x = jnp.where(jnp.arange(x.shape[-1]) == i[..., None], jnp.inf, x)
+    return jnp.stack(vals, -1), jnp.stack(idxs, -1)
+
+
 def assign_slots(sm: SimModel, terrain: Terrain, foot_xy, torso_xy):
     """Slot geom positions and sizes for one env: the `slots_per_leg` boxes nearest each foot and the
     `torso_slots` nearest the torso centre; unused slots are parked below the ground.
@@ -141,7 +153,8 @@ def assign_slots(sm: SimModel, terrain: Terrain, foot_xy, torso_xy):
     for pts, kk in groups:
         dist = _box_xy_distance(pts, terrain)
         kk_eff = min(kk, dist.shape[1])
-        neg, idx = jax.lax.top_k(-dist, kk_eff)
+        dmin, idx = _k_smallest(dist, kk_eff)
+        neg = -dmin
         reach = SLOT_REACH if pts.shape[0] == N_LEGS else 0.5 * sm.robot.body_length + SLOT_REACH
         use = -neg <= reach
         pos = jnp.where(use[..., None], terrain.box_pos[idx], jnp.array([0.0, 0.0, PARKED_Z]))

@@ -221,12 +221,14 @@ def rollout(robot: RobotSpec, terrain: Terrain, controller, params, duration: fl
         n_dev = mesh.shape["batch"]
         if b % n_dev:
             raise ValueError(f"terrain batch size={b} must be a multiple of the mesh's {n_dev} 'batch' devices")
-        shard = NamedSharding(mesh, P("batch"))
+        shard, replicated = NamedSharding(mesh, P("batch")), NamedSharding(mesh, P())
         terrain = jax.device_put(terrain, shard)
         keys = jax.device_put(keys, shard)
-        if params_batched:
-            params = jax.device_put(params, shard)
-    out = fn(sm.mjx_model, params, terrain, keys)
+        params = jax.device_put(params, shard if params_batched else replicated)
+        model = jax.device_put(sm.mjx_model, replicated)
+    else:
+        model = sm.mjx_model
+    out = fn(model, params, terrain, keys)
     rollout.last_compile_s = fn.last_compile_s
     return out
 
