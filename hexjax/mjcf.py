@@ -47,6 +47,14 @@ class PhysicsConfig:
             raise ValueError(f"physics.slots_per_leg={self.slots_per_leg!r}, torso_slots={self.torso_slots!r}: must be >= 0")
 
 
+def physics_for(kind: str, base: "PhysicsConfig | None" = None) -> "PhysicsConfig":
+    """The physics settings a terrain kind needs: flat ground has no boxes, so no slots (7 pairs)."""
+    base = base or PhysicsConfig()
+    if kind == "flat":
+        return dataclasses.replace(base, slots_per_leg=0, torso_slots=0)
+    return base
+
+
 def _f(*xs) -> str:
     return " ".join(f"{x:.6g}" for x in xs)
 

@@ -15,7 +15,7 @@ from tqdm.auto import tqdm
 
 from hexjax.analysis.evaluate import pad_terrain
 from hexjax.control.gait import GaitController
-from hexjax.mjcf import PhysicsConfig
+from hexjax.mjcf import PhysicsConfig, physics_for
 from hexjax.robot import get_robot
 from hexjax.sim.model import assign_slots, env_model, sim_model
 from hexjax.sim.rollout import RolloutConfig, rollout
@@ -68,23 +68,24 @@ def bench(robot: str = "luneckas2020", batches: Sequence[int] = (16, 64, 256), s
     for tname, b in tqdm(jobs, desc="bench", disable=not progress):
         tspec = get_terrain(tname)
         terr = sample(tspec, jax.random.PRNGKey(0), b)
+        phys = physics_for(tspec.kind, physics)
         t0 = time.perf_counter()
-        out = rollout(spec, terr, ctrl, params, sim_seconds, jax.random.PRNGKey(1), physics=physics, config=cfg)
+        out = rollout(spec, terr, ctrl, params, sim_seconds, jax.random.PRNGKey(1), physics=phys, config=cfg)
         jax.block_until_ready(out.end_pose)
         first = time.perf_counter() - t0
         compile_s = rollout.last_compile_s
         best = np.inf
         for r in range(repeats):
             t0 = time.perf_counter()
-            out = rollout(spec, terr, ctrl, params, sim_seconds, jax.random.PRNGKey(2 + r), physics=physics, config=cfg)
+            out = rollout(spec, terr, ctrl, params, sim_seconds, jax.random.PRNGKey(2 + r), physics=phys, config=cfg)
             jax.block_until_ready(out.end_pose)
             best = min(best, time.perf_counter() - t0)
-        rows.append(dict(terrain=tname, batch=b, compile_s=round(compile_s, 2), first_call_s=round(first, 2),
+        rows.append(dict(terrain=tname, batch=b, pairs=2 * 6 * phys.slots_per_leg + phys.torso_slots + 7, compile_s=round(compile_s, 2), first_call_s=round(first, 2),
                          run_s=round(best, 4), env_steps_per_s=round(b * n_phys / best, 1),
                          nan=int(np.asarray(out.nan).sum()), fell=int(np.asarray(out.fell).sum())))
         if progress:
             tqdm.write(f"{tname} B={b}: compile {compile_s:.1f} s, {rows[-1]['env_steps_per_s']:.0f} env-steps/s")
-    ref = {t: mujoco_c_steps_per_s(robot, t, physics) for t in terrains}
+    ref = {t: mujoco_c_steps_per_s(robot, t, physics_for(get_terrain(t).kind, physics)) for t in terrains}
     for r in rows:
         r["mujoco_c_1thread_steps_per_s"] = round(ref[r["terrain"]], 1)
         r["ratio_vs_mujoco_c_1thread"] = round(r["env_steps_per_s"] / ref[r["terrain"]], 3)
@@ -97,9 +98,9 @@ def bench(robot: str = "luneckas2020", batches: Sequence[int] = (16, 64, 256), s
 
 
 def format_bench(res: Dict) -> str:
-    head = f"{'terrain':<11} {'batch':>7} {'compile s':>9} {'env-steps/s':>12} {'MuJoCo C 1thr':>13} {'ratio':>6}"
+    head = f"{'terrain':<11} {'pairs':>5} {'batch':>7} {'compile s':>9} {'env-steps/s':>12} {'MuJoCo C 1thr':>13} {'ratio':>6}"
     lines = [f"{res['device']} ({res['backend']}, {res['n_devices']} device(s)), {res['sim_seconds']} s simulated", head]
     for r in res["rows"]:
-        lines.append(f"{r['terrain']:<11} {r['batch']:7d} {r['compile_s']:9.1f} {r['env_steps_per_s']:12.0f} "
+        lines.append(f"{r['terrain']:<11} {r['pairs']:5d} {r['batch']:7d} {r['compile_s']:9.1f} {r['env_steps_per_s']:12.0f} "
                      f"{r['mujoco_c_1thread_steps_per_s']:13.0f} {r['ratio_vs_mujoco_c_1thread']:6.2f}")
     return "\n".join(lines)

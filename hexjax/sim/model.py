@@ -9,9 +9,10 @@ Only geom_pos / geom_size of the slot geoms differ per env (a batch axis on thos
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
-import logging
+import io
 
 import jax
 import jax.numpy as jnp
@@ -23,8 +24,10 @@ from hexjax.mjcf import PARKED_Z, PhysicsConfig, build_mjcf
 from hexjax.robot import LEG_NAMES, N_LEGS, RobotSpec
 from hexjax.terrain import Terrain
 
-logging.getLogger("mujoco.mjx").setLevel(logging.ERROR)  # its optional-warp import notice
-from mujoco import mjx  # noqa: E402
+# mujoco.mjx prints "Failed to import warp" when the optional MuJoCo Warp backend is absent; hexjax uses
+# the JAX implementation, so that notice is noise on every command.
+with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+    from mujoco import mjx  # noqa: E402
 
 SLOT_REACH = 0.12  # m: terrain boxes farther than this from a foot are not given a slot
 
