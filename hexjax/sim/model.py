@@ -177,9 +177,9 @@ def slot_geom_ids(sm: SimModel) -> np.ndarray:
     return np.concatenate([sm.leg_slot_geoms.reshape(-1), sm.torso_slot_geoms])
 
 
-def env_model(sm: SimModel, terrain: Terrain, slot_pos, slot_size):
-    """The mjx.Model of one env: the shared model with its ground height and slot geoms set."""
-    m = sm.mjx_model
+def env_model(sm: SimModel, terrain: Terrain, slot_pos, slot_size, base=None):
+    """The mjx.Model of one env: `base` (default the shared model) with its ground height and slots set."""
+    m = sm.mjx_model if base is None else base
     ids = slot_geom_ids(sm)
     geom_pos = m.geom_pos.at[sm.ground_geom, 2].set(terrain.ground_z)
     geom_size = m.geom_size

@@ -107,7 +107,7 @@ def _compiled(robot: RobotSpec, physics: PhysicsConfig, sensors: SensorConfig, c
             d, cstate, acc = carry
             foot_xy = d.site_xpos[foot_sites, :2]
             slot_pos, slot_size = assign_slots(sm, terrain, foot_xy, d.qpos[:2])
-            m = env_model(sm, terrain, slot_pos, slot_size)
+            m = env_model(sm, terrain, slot_pos, slot_size, base=m_shared)
             obs = read_obs(sm, sensors, m, d)
             new_cstate, action = controller.step(params, cstate, obs)
             walking = i >= n_settle
