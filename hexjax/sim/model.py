@@ -21,7 +21,7 @@ import numpy as np
 from flax import struct
 
 from hexjax.mjcf import PARKED_Z, PhysicsConfig, build_mjcf
-from hexjax.robot import LEG_NAMES, N_LEGS, RobotSpec
+from hexjax.robot import LEG_NAMES, N_LEGS, RobotSpec, neutral_feet_body
 from hexjax.terrain import Terrain
 
 # mujoco.mjx prints "Failed to import warp" when the optional MuJoCo Warp backend is absent; hexjax uses
@@ -147,27 +147,19 @@ def assign_slots(sm: SimModel, terrain: Terrain, foot_xy, torso_xy):
 
     foot_xy (6, 2), torso_xy (2,) -> (slot_pos (S, 3), slot_size (S, 3)), S = 6 * k + torso_slots."""
     k, kt = sm.physics.slots_per_leg, sm.physics.torso_slots
-    groups = []
+    groups = []  # (query points, slots per point, reach m)
     if k:
-        groups.append((foot_xy, k))
+        groups.append((foot_xy, k, SLOT_REACH))
     if kt:
-        groups.append((torso_xy[None], kt))
+        groups.append((torso_xy[None], kt, 0.5 * sm.robot.body_length + SLOT_REACH))
+    parked = jnp.array([0.0, 0.0, PARKED_Z])
     pos_out, size_out = [], []
-    for pts, kk in groups:
-        dist = _box_xy_distance(pts, terrain)
-        kk_eff = min(kk, dist.shape[1])
-        dmin, idx = _k_smallest(dist, kk_eff)
-        neg = -dmin
-        reach = SLOT_REACH if pts.shape[0] == N_LEGS else 0.5 * sm.robot.body_length + SLOT_REACH
-        use = -neg <= reach
-        pos = jnp.where(use[..., None], terrain.box_pos[idx], jnp.array([0.0, 0.0, PARKED_Z]))
-        size = jnp.where(use[..., None], terrain.box_half[idx], 0.01)
-        if kk_eff < kk:  # fewer terrain boxes than slots: park the rest
-            pad = kk - kk_eff
-            pos = jnp.concatenate([pos, jnp.broadcast_to(jnp.array([0.0, 0.0, PARKED_Z]), pos.shape[:-2] + (pad, 3))], -2)
-            size = jnp.concatenate([size, jnp.full(size.shape[:-2] + (pad, 3), 0.01)], -2)
-        pos_out.append(pos.reshape(-1, 3))
-        size_out.append(size.reshape(-1, 3))
+    for pts, kk, reach in groups:
+        # with fewer boxes than slots the extra passes return inf, so those slots are parked below
+        dmin, idx = _k_smallest(_box_xy_distance(pts, terrain), kk)
+        use = (dmin <= reach)[..., None]
+        pos_out.append(jnp.where(use, terrain.box_pos[idx], parked).reshape(-1, 3))
+        size_out.append(jnp.where(use, terrain.box_half[idx], 0.01).reshape(-1, 3))
     if not pos_out:
         return jnp.zeros((0, 3)), jnp.zeros((0, 3))
     return jnp.concatenate(pos_out), jnp.concatenate(size_out)
@@ -192,7 +184,6 @@ def env_model(sm: SimModel, terrain: Terrain, slot_pos, slot_size, base=None):
 def batch_model(sm: SimModel, terrain: Terrain):
     """Playground-style batching: (model with a leading batch axis on geom_pos / geom_size only,
     in_axes pytree for jax.vmap). Slots start at the boxes nearest the neutral stance at the origin."""
-    from hexjax.robot import neutral_feet_body
     feet = jnp.asarray(neutral_feet_body(sm.robot)[:, :2])
 
     def one(t):
