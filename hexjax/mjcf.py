@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import dataclasses
 
-import numpy as np
 
 from hexjax.robot import LEG_NAMES, N_LEGS, RobotSpec, forward_sign, hip_positions, mount_yaws, \
     neutral_joint_angles

@@ -13,11 +13,10 @@ import mujoco
 import numpy as np
 from tqdm.auto import tqdm
 
-from hexjax.analysis.evaluate import pad_terrain
 from hexjax.control.gait import GaitController
 from hexjax.mjcf import PhysicsConfig, physics_for
 from hexjax.robot import get_robot
-from hexjax.sim.model import assign_slots, env_model, sim_model
+from hexjax.sim.model import batch_model, sim_model
 from hexjax.sim.rollout import RolloutConfig, rollout
 from hexjax.terrain import get_terrain, sample
 
@@ -27,11 +26,9 @@ def mujoco_c_steps_per_s(robot: str, terrain: str, physics: PhysicsConfig, secon
     spec = get_robot(robot)
     sm = sim_model(spec, physics)
     m = mujoco.MjModel.from_xml_string(sm.xml)
-    t = jax.tree_util.tree_map(lambda x: x[0], sample(get_terrain(terrain), jax.random.PRNGKey(0), 1))
-    from hexjax.robot import neutral_feet_body
-    mx = env_model(sm, t, *assign_slots(sm, t, jax.numpy.asarray(neutral_feet_body(spec)[:, :2]), jax.numpy.zeros(2)))
-    m.geom_pos[:] = np.asarray(mx.geom_pos)
-    m.geom_size[:] = np.asarray(mx.geom_size)
+    mx, _ = batch_model(sm, sample(get_terrain(terrain), jax.random.PRNGKey(0), 1))
+    m.geom_pos[:] = np.asarray(mx.geom_pos[0])
+    m.geom_size[:] = np.asarray(mx.geom_size[0])
     d = mujoco.MjData(m)
     mujoco.mj_resetDataKeyframe(m, d, 0)
     ctrl = GaitController(spec)
@@ -80,7 +77,7 @@ def bench(robot: str = "luneckas2020", batches: Sequence[int] = (16, 64, 256), s
             out = rollout(spec, terr, ctrl, params, sim_seconds, jax.random.PRNGKey(2 + r), physics=phys, config=cfg)
             jax.block_until_ready(out.end_pose)
             best = min(best, time.perf_counter() - t0)
-        rows.append(dict(terrain=tname, batch=b, pairs=2 * 6 * phys.slots_per_leg + phys.torso_slots + 7, compile_s=round(compile_s, 2), first_call_s=round(first, 2),
+        rows.append(dict(terrain=tname, batch=b, pairs=sim_model(spec, phys).n_pairs, compile_s=round(compile_s, 2), first_call_s=round(first, 2),
                          run_s=round(best, 4), env_steps_per_s=round(b * n_phys / best, 1),
                          nan=int(np.asarray(out.nan).sum()), fell=int(np.asarray(out.fell).sum())))
         if progress:

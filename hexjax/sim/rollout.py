@@ -18,7 +18,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 from hexjax.mjcf import PhysicsConfig
 from hexjax.robot import RobotSpec
 from hexjax.sim.model import SensorConfig, assign_slots, env_model, mjx, read_obs, sim_model
-from hexjax.terrain import Terrain, TerrainSpec
+from hexjax.terrain import Terrain
 
 
 @dataclasses.dataclass(frozen=True)
@@ -74,7 +74,7 @@ def _yaw(q):
 
 def _tilt(q):
     """Angle between the torso z axis and world z, rad."""
-    w, x, y, z = q[0], q[1], q[2], q[3]
+    x, y = q[1], q[2]
     up_z = 1 - 2 * (x * x + y * y)
     return jnp.arccos(jnp.clip(up_z / jnp.maximum(jnp.sum(q * q), 1e-9), -1.0, 1.0))
 
