@@ -103,11 +103,13 @@ def luneckas2020() -> RobotSpec:
 
 def yu2019() -> RobotSpec:
     """The virtual hexapod of Yu, Gao, Deng 2019 Table 3 (seed 003): coxa 50 mm, thigh 120 mm,
-    shank 150 mm, body 250 mm. Mass and servo limits are not in the table; chosen to match its size."""
+    shank 150 mm, body 250 mm. Mass and servo limits are not in the table; chosen to match its size. The
+    servos are stiff (kp 60 N*m/rad: the stance legs sag ~5 mm) like the paper's BLDC-driven joints; at
+    kp 15 the torso sagged 25 mm and every swing foot met the ground well before its AEP."""
     return RobotSpec(name="yu2019", coxa_length=0.05, femur_length=0.12, tibia_length=0.15,
                      total_mass=3.0, body_length=0.25, body_width=0.14, body_thickness=0.05,
                      hip_x=0.10, hip_y=0.07, stance_radial=0.17, stance_splay=0.45, body_clearance=0.10,
-                     kp=15.0, kv=0.3, max_torque=4.0, foot_radius=0.012)
+                     kp=60.0, kv=0.6, max_torque=8.0, foot_radius=0.012)
 
 
 PRESETS = {"luneckas2020": luneckas2020, "yu2019": yu2019}

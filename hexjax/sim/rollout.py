@@ -52,6 +52,10 @@ class Summary:
     max_tilt (B,) rad, min_height (B,) m (torso centre above the ground plane)
     tactile_steps (B, 6)          control steps with each leg's tactile pad on
     trace (B, T, 4) or None       x, y, z, yaw per control step when RolloutConfig.record
+    foot_trace (B, T, 6, 3) or None  foot centres, world frame, m, when RolloutConfig.record
+    ctrl_trace or None            the controller's `trace(state, obs)` per step, when it has one and
+                                  RolloutConfig.record
+    final_state                   the controller state after the last step (reflex counters etc.)
     """
 
     start_pose: jax.Array
@@ -65,6 +69,9 @@ class Summary:
     min_height: jax.Array
     tactile_steps: jax.Array
     trace: Optional[jax.Array] = None
+    foot_trace: Optional[jax.Array] = None
+    ctrl_trace: Any = None
+    final_state: Any = None
 
 
 def _yaw(q):
@@ -76,7 +83,8 @@ def _tilt(q):
     """Angle between the torso z axis and world z, rad."""
     x, y = q[1], q[2]
     up_z = 1 - 2 * (x * x + y * y)
-    return jnp.arccos(jnp.clip(up_z / jnp.maximum(jnp.sum(q * q), 1e-9), -1.0, 1.0))
+    # clipped inside (-1, 1) so the derivative stays finite for an upright torso (jax.grad)
+    return jnp.arccos(jnp.clip(up_z / jnp.maximum(jnp.sum(q * q), 1e-9), -1.0 + 1e-6, 1.0 - 1e-6))
 
 
 def _substeps(physics: PhysicsConfig, ctrl_dt: float) -> int:
@@ -93,7 +101,9 @@ def _compiled(robot: RobotSpec, physics: PhysicsConfig, sensors: SensorConfig, c
     n_sub = _substeps(physics, controller.dt)
     n_settle = int(round(cfg.settle_time / controller.dt))
     n_total = n_settle + n_ctrl
-    ctrl0 = jnp.asarray(sm.ctrl0)
+    ctrl0_default = jnp.asarray(sm.ctrl0)
+    has_init_action = hasattr(controller, "initial_action")
+    has_trace = hasattr(controller, "trace")
     foot_sites = jnp.asarray(sm.foot_sites)
     dt = physics.timestep
 
@@ -102,6 +112,9 @@ def _compiled(robot: RobotSpec, physics: PhysicsConfig, sensors: SensorConfig, c
         yaw0 = jax.random.uniform(k_yaw, (), minval=-cfg.yaw_noise, maxval=cfg.yaw_noise)
         d0 = sm.init_data(jnp.stack([0.0, 0.0, yaw0]))
         cstate0 = controller.init(params, k_ctrl)
+        # a controller may ask to settle in its own first posture (the CPG starts mid-stride)
+        ctrl0 = controller.initial_action(params) if has_init_action else ctrl0_default
+        d0 = d0.replace(qpos=d0.qpos.at[7:].set(ctrl0), ctrl=ctrl0)
 
         def control_step(carry, i):
             d, cstate, acc = carry
@@ -128,7 +141,8 @@ def _compiled(robot: RobotSpec, physics: PhysicsConfig, sensors: SensorConfig, c
             tilt = _tilt(q)
             fallen_now = walking & ((tilt > cfg.fall_tilt) | (height < cfg.fall_height))
             t_now = (i + 1 - n_settle) * controller.dt
-            step_xy = jnp.linalg.norm(d_new.qpos[:2] - d.qpos[:2])
+            dxy = d_new.qpos[:2] - d.qpos[:2]
+            step_xy = jnp.sqrt(jnp.sum(dxy * dxy) + 1e-18)  # offset keeps the derivative finite at rest
             pose = jnp.stack([d_new.qpos[0], d_new.qpos[1], _yaw(q)])
             acc = dict(
                 start_pose=jnp.where(i == n_settle - 1, pose, acc["start_pose"]),
@@ -141,7 +155,12 @@ def _compiled(robot: RobotSpec, physics: PhysicsConfig, sensors: SensorConfig, c
                 min_height=jnp.minimum(acc["min_height"], jnp.where(walking, height, jnp.inf)),
                 tactile_steps=acc["tactile_steps"] + (walking & obs.tactile).astype(jnp.int32),
             )
-            out = jnp.concatenate([d_new.qpos[:3], _yaw(q)[None]]) if cfg.record else None
+            if cfg.record:
+                out = dict(pose=jnp.concatenate([d_new.qpos[:3], _yaw(q)[None]]),
+                           feet=d_new.site_xpos[foot_sites],
+                           ctrl=controller.trace(cstate, obs) if has_trace else None)
+            else:
+                out = None
             return (d_new, cstate, acc), out
 
         start = jnp.stack([d0.qpos[0], d0.qpos[1], yaw0])
@@ -151,11 +170,13 @@ def _compiled(robot: RobotSpec, physics: PhysicsConfig, sensors: SensorConfig, c
                     tactile_steps=jnp.zeros(6, jnp.int32))
         # forward once so site positions exist before the first slot assignment
         d0 = mjx.forward(m_shared, d0)
-        (d, _, acc), trace = jax.lax.scan(control_step, (d0, cstate0, acc0), jnp.arange(n_total))
+        (d, cstate, acc), rec = jax.lax.scan(control_step, (d0, cstate0, acc0), jnp.arange(n_total))
         end = jnp.stack([d.qpos[0], d.qpos[1], _yaw(d.qpos[3:7])])
+        extra = {}
         if cfg.record:
-            trace = trace[n_settle:]
-        return Summary(end_pose=end, trace=trace, **acc)
+            rec = jax.tree_util.tree_map(lambda a: a[n_settle:], rec)
+            extra = dict(trace=rec["pose"], foot_trace=rec["feet"], ctrl_trace=rec["ctrl"])
+        return Summary(end_pose=end, final_state=cstate, **extra, **acc)
 
     def batched(m_shared, params, terrain, keys):
         return jax.vmap(single, in_axes=(None, 0 if params_batched else None, 0, 0))(m_shared, params, terrain, keys)
@@ -234,6 +255,20 @@ def rollout(robot: RobotSpec, terrain: Terrain, controller, params, duration: fl
 
 
 rollout.last_compile_s = 0.0
+
+
+def rollout_function(robot: RobotSpec, controller, duration: float, *, physics: PhysicsConfig = PhysicsConfig(),
+                     sensors: SensorConfig = SensorConfig(), config: RolloutConfig = RolloutConfig(),
+                     params_batched: bool = False):
+    """(model, fn) with fn(model, params, terrain, keys) -> Summary the pure jitted batched rollout, for use
+    inside `jax.grad`, `jax.jit` or `vmap` (e.g. tuning controller params). keys: (B, 2) PRNG keys, one per
+    env. Same checks as `rollout` on the static inputs."""
+    robot.validate(); physics.validate(); config.validate()
+    if not (isinstance(duration, (int, float)) and math.isfinite(duration) and duration > 0):
+        raise ValueError(f"duration={duration!r}: must be a finite number of seconds > 0")
+    n_ctrl = int(math.ceil(duration / controller.dt - 1e-9))
+    sm, fn = _compiled(robot, physics, sensors, controller, config, n_ctrl, params_batched)
+    return sm.mjx_model, fn.jitted
 
 
 def make_mesh(devices=None) -> Mesh:
