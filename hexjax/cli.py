@@ -1,4 +1,4 @@
-"""The `hexjax` command: evaluate, bench, terrain."""
+"""The `hexjax` command: evaluate, experiment, bench, terrain."""
 
 from __future__ import annotations
 
@@ -29,10 +29,27 @@ def _cmd_evaluate(a) -> int:
     return 0
 
 
+def _cmd_experiment(a) -> int:
+    from hexjax.analysis.experiment import format_experiment, plot_experiment, run_experiment
+    res = run_experiment(a.name, batch=a.batch, seed=a.seed, duration=a.duration, record=bool(a.png))
+    c = res["config"]
+    print(f"\n{c['experiment']}: robot {c['robot']}, {c['batch']} randomised terrains per row, "
+          f"{c['duration_s']:g} s, seed {c['seed']}")
+    print(format_experiment(res))
+    if a.png:
+        plot_experiment(res, a.png)
+        print(f"wrote {a.png}")
+    res.pop("_records", None)
+    if a.json:
+        _write_json(a.json, res)
+    return 0
+
+
 def _cmd_bench(a) -> int:
     from hexjax.analysis.bench import bench, format_bench
     batches = [int(x) for x in a.batches.split(",")]
-    res = bench(robot=a.robot, batches=batches, sim_seconds=a.seconds, terrains=a.terrains.split(","))
+    res = bench(robot=a.robot, batches=batches, sim_seconds=a.seconds, terrains=a.terrains.split(","),
+                controller=a.controller)
     print(format_bench(res))
     if a.json:
         _write_json(a.json, res)
@@ -81,11 +98,22 @@ def main(argv=None) -> int:
     e.add_argument("--json", default="", help="write the numbers here")
     e.set_defaults(fn=_cmd_evaluate)
 
+    x = sub.add_parser("experiment", help="Yu 2019 reflex experiments: yu2019-step, yu2019-ditch")
+    x.add_argument("name", choices=["yu2019-step", "yu2019-ditch"])
+    x.add_argument("--batch", type=int, default=16, help="randomised terrains per row (default 16)")
+    x.add_argument("--seed", type=int, default=0)
+    x.add_argument("--duration", type=float, default=None, help="s (default: the preset's)")
+    x.add_argument("--json", default="", help="write the numbers here")
+    x.add_argument("--png", default="", help="write foot-path and CPG-output plots here")
+    x.set_defaults(fn=_cmd_experiment)
+
     b = sub.add_parser("bench", help="env-steps/s of the full rollout at several batch sizes")
     b.add_argument("--robot", default="luneckas2020")
     b.add_argument("--batches", default="16,64,256")
     b.add_argument("--terrains", default="flat,high-large")
     b.add_argument("--seconds", type=float, default=2.0, help="simulated seconds per rollout")
+    b.add_argument("--controller", default="gait", choices=["gait", "cpg", "both"],
+                   help="seed-000 gait, the Yu 2019 CPG, or both (CPG overhead ratio)")
     b.add_argument("--json", default="", help="write the numbers here")
     b.set_defaults(fn=_cmd_bench)
 

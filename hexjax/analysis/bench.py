@@ -50,19 +50,31 @@ def mujoco_c_steps_per_s(robot: str, terrain: str, physics: PhysicsConfig, secon
 
 def bench(robot: str = "luneckas2020", batches: Sequence[int] = (16, 64, 256), sim_seconds: float = 2.0,
           terrains: Sequence[str] = ("flat", "high-large"), gait: str = "tripod",
-          physics: PhysicsConfig = PhysicsConfig(), repeats: int = 2, progress: bool = True) -> Dict:
-    """Times `rollout` at each batch size on each terrain. env-steps = envs x physics steps."""
+          physics: PhysicsConfig = PhysicsConfig(), repeats: int = 2, progress: bool = True,
+          controller: str = "gait") -> Dict:
+    """Times `rollout` at each batch size on each terrain. env-steps = envs x physics steps.
+
+    controller: 'gait' (seed-000 open-loop gait), 'cpg' (Yu 2019 CPG with reflexes and FSM) or 'both'
+    (each row timed with both; `cpg_overhead` = gait rate / CPG rate - 1)."""
     for b in batches:
         if not isinstance(b, int) or b < 1:
             raise ValueError(f"batches entry {b!r}: must be an integer >= 1")
+    if controller not in ("gait", "cpg", "both"):
+        raise ValueError(f"controller={controller!r}: choose 'gait', 'cpg' or 'both'")
     spec = get_robot(robot)
-    ctrl = GaitController(spec, gait=gait)
-    params = ctrl.default_params()
+    ctrls = {}
+    if controller in ("gait", "both"):
+        ctrls["gait"] = GaitController(spec, gait=gait)
+    if controller in ("cpg", "both"):
+        from hexjax.control.cpg import CPGController
+        ctrls["cpg"] = CPGController(spec, gait=gait)
     cfg = RolloutConfig()
     n_phys = int(round((sim_seconds + cfg.settle_time) / physics.timestep))
     rows = []
-    jobs = [(t, b) for t in terrains for b in batches]
-    for tname, b in tqdm(jobs, desc="bench", disable=not progress):
+    jobs = [(t, b, c) for t in terrains for b in batches for c in ctrls]
+    for tname, b, cname in tqdm(jobs, desc="bench", disable=not progress):
+        ctrl = ctrls[cname]
+        params = ctrl.default_params()
         tspec = get_terrain(tname)
         terr = sample(tspec, jax.random.PRNGKey(0), b)
         phys = physics_for(tspec.kind, physics)
@@ -77,17 +89,22 @@ def bench(robot: str = "luneckas2020", batches: Sequence[int] = (16, 64, 256), s
             out = rollout(spec, terr, ctrl, params, sim_seconds, jax.random.PRNGKey(2 + r), physics=phys, config=cfg)
             jax.block_until_ready(out.end_pose)
             best = min(best, time.perf_counter() - t0)
-        rows.append(dict(terrain=tname, batch=b, pairs=sim_model(spec, phys).n_pairs, compile_s=round(compile_s, 2), first_call_s=round(first, 2),
+        rows.append(dict(terrain=tname, batch=b, controller=cname, pairs=sim_model(spec, phys).n_pairs, compile_s=round(compile_s, 2), first_call_s=round(first, 2),
                          run_s=round(best, 4), env_steps_per_s=round(b * n_phys / best, 1),
                          nan=int(np.asarray(out.nan).sum()), fell=int(np.asarray(out.fell).sum())))
         if progress:
-            tqdm.write(f"{tname} B={b}: compile {compile_s:.1f} s, {rows[-1]['env_steps_per_s']:.0f} env-steps/s")
+            tqdm.write(f"{tname} B={b} {cname}: compile {compile_s:.1f} s, {rows[-1]['env_steps_per_s']:.0f} env-steps/s")
     ref = {t: mujoco_c_steps_per_s(robot, t, physics_for(get_terrain(t).kind, physics)) for t in terrains}
     for r in rows:
         r["mujoco_c_1thread_steps_per_s"] = round(ref[r["terrain"]], 1)
         r["ratio_vs_mujoco_c_1thread"] = round(r["env_steps_per_s"] / ref[r["terrain"]], 3)
+    if controller == "both":
+        rate = {(r["terrain"], r["batch"], r["controller"]): r["env_steps_per_s"] for r in rows}
+        for r in rows:
+            if r["controller"] == "cpg":
+                r["cpg_overhead"] = round(rate[(r["terrain"], r["batch"], "gait")] / r["env_steps_per_s"] - 1.0, 3)
     dev = jax.devices()[0]
-    return dict(robot=robot, gait=gait, sim_seconds=sim_seconds, physics_steps_per_env=n_phys,
+    return dict(robot=robot, gait=gait, controller=controller, sim_seconds=sim_seconds, physics_steps_per_env=n_phys,
                 physics=dataclasses.asdict(physics), backend=jax.default_backend(),
                 device=f"{dev.platform}:{getattr(dev, 'device_kind', '')}", n_devices=len(jax.devices()),
                 host=platform.node(), cpu_count=__import__("os").cpu_count(), jax=jax.__version__,
@@ -95,9 +112,13 @@ def bench(robot: str = "luneckas2020", batches: Sequence[int] = (16, 64, 256), s
 
 
 def format_bench(res: Dict) -> str:
-    head = f"{'terrain':<11} {'pairs':>5} {'batch':>7} {'compile s':>9} {'env-steps/s':>12} {'MuJoCo C 1thr':>13} {'ratio':>6}"
-    lines = [f"{res['device']} ({res['backend']}, {res['n_devices']} device(s)), {res['sim_seconds']} s simulated", head]
+    head = (f"{'terrain':<11} {'ctrl':<5} {'pairs':>5} {'batch':>7} {'compile s':>9} {'env-steps/s':>12} "
+            f"{'MuJoCo C 1thr':>13} {'ratio':>6} {'CPG cost':>8}")
+    lines = [f"{res['device']} ({res['backend']}, {res['n_devices']} device(s)), {res['sim_seconds']} s simulated, "
+             f"robot {res['robot']}", head]
     for r in res["rows"]:
-        lines.append(f"{r['terrain']:<11} {r['pairs']:5d} {r['batch']:7d} {r['compile_s']:9.1f} {r['env_steps_per_s']:12.0f} "
-                     f"{r['mujoco_c_1thread_steps_per_s']:13.0f} {r['ratio_vs_mujoco_c_1thread']:6.2f}")
+        extra = f"{100 * r['cpg_overhead']:+7.1f}%" if "cpg_overhead" in r else ""
+        lines.append(f"{r['terrain']:<11} {r.get('controller', 'gait'):<5} {r['pairs']:5d} {r['batch']:7d} "
+                     f"{r['compile_s']:9.1f} {r['env_steps_per_s']:12.0f} "
+                     f"{r['mujoco_c_1thread_steps_per_s']:13.0f} {r['ratio_vs_mujoco_c_1thread']:6.2f} {extra:>8}")
     return "\n".join(lines)

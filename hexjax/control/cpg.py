@@ -46,7 +46,7 @@ import numpy as np
 from flax import struct
 
 from hexjax.control.vdp import NetworkParams, locked_state, network_rhs, rk4_step
-from hexjax.robot import N_LEGS, RobotSpec, forward_sign, leg_fk, leg_ik
+from hexjax.robot import N_LEGS, RobotSpec, forward_sign, leg_fk, leg_ik, leg_to_body
 
 # Gait indicator gamma of Eq. 16 and each leg's swing slot (legs LF, LM, LH, RF, RM, RH = the paper's
 # Leg1..Leg6; slot 0 swings first). Tripod: legs 1, 3, 5 start at [-1, 0] (swing), 2, 4, 6 at [1, 0]
@@ -76,10 +76,12 @@ class CPGParams:
     f_contact (3,) N: F_contact-x (lateral), -y (forward), -z (vertical), Eqs. 8-9
     ramp_time () s: T_s of Eq. 11
     elevator_y1 (): the value y_1 is set to by Eq. 10 (at omega_1 = 0.4 pi)
+    elevator_window (): the elevator reflex can fire once the swinging leader x_1 is past this value
     search_amp (3,) rad: delta alpha, beta, gamma of Eq. 14
     search_sigma (): sigma of Eq. 15
     search_freq (3,): factors on omega_1..3 while searching, Eq. 12
-    temp_force () N, temp_phase (): temperatures of the smooth gates (unused in the hard form)
+    raised_tolerance () m: a touchdown this far above the stance feet is a raised foothold kept in stance
+    temp_force () N, temp_phase (), temp_height () m: temperatures of the smooth gates (unused when hard)
     """
 
     net: NetworkParams
@@ -93,10 +95,13 @@ class CPGParams:
     f_contact: jax.Array
     ramp_time: jax.Array
     elevator_y1: jax.Array
+    elevator_window: jax.Array
     search_amp: jax.Array
     search_sigma: jax.Array
     search_freq: jax.Array
+    raised_tolerance: jax.Array
     temp_force: jax.Array
+    temp_height: jax.Array
     temp_phase: jax.Array
 
 
@@ -113,8 +118,9 @@ class CPGState:
     q_ref          joints when the search began (alpha, beta, gamma (t_td^-) of Eq. 14)
     hold_q, offset held posture; converter offset after a release
     kept           1 while a leg holds a foothold found by a search (its posture becomes the offset)
+    paused         1 for a stance leg frozen mid-stance while another leg runs a reflex
     lam_ob         lambda_ob of the previous step (the reflex fires on its rising edge)
-    q_cmd          last joint command
+    q_cmd, q_meas  last joint command; joint angles measured at the last step
     counters: n_elev, n_search, n_found, n_fail (6,) events per leg; depth (6,) m deepest foothold
     found by a search below the nominal AEP; wait_steps (6,) control steps spent in stance-prolong while
     another leg searched; t () s
@@ -133,7 +139,9 @@ class CPGState:
     offset: jax.Array
     lam_ob: jax.Array
     q_cmd: jax.Array
+    q_meas: jax.Array
     kept: jax.Array
+    paused: jax.Array
     n_elev: jax.Array
     n_search: jax.Array
     n_found: jax.Array
@@ -260,9 +268,10 @@ class CPGController:
             clearance=jnp.asarray(self.clearance), elevated_clearance=jnp.asarray(self.elevated_clearance),
             body_height=jnp.asarray(self.robot.hip_height), lc_trim=jnp.zeros((2, 2, 3)),
             f_contact=jnp.array([10.0, 10.0, 2.0]), ramp_time=jnp.asarray(0.5),
-            elevator_y1=jnp.asarray(-1.0), search_amp=jnp.radians(jnp.array([7.5, 4.0, 2.5])),
+            elevator_y1=jnp.asarray(-1.0), elevator_window=jnp.asarray(-0.5), search_amp=jnp.radians(jnp.array([7.5, 4.0, 2.5])),
             search_sigma=jnp.asarray(1.2), search_freq=jnp.array([0.5, 1.5, 1.5]),
-            temp_force=jnp.asarray(1.0), temp_phase=jnp.asarray(0.05))
+            raised_tolerance=jnp.asarray(0.015),
+            temp_force=jnp.asarray(1.0), temp_phase=jnp.asarray(0.05), temp_height=jnp.asarray(0.002))
 
     def validate_params(self, p: CPGParams) -> None:
         """Host-side checks on concrete params, before tracing; names the field and value."""
@@ -273,7 +282,8 @@ class CPGController:
             return np.asarray(obj, dtype=float)
 
         positive = ("net.eps", "net.b", "net.omega", "step_length", "clearance", "elevated_clearance",
-                    "body_height", "ramp_time", "search_sigma", "search_freq", "temp_force", "temp_phase")
+                    "body_height", "ramp_time", "search_sigma", "search_freq", "temp_force", "temp_phase",
+                    "temp_height", "raised_tolerance")
         for f in positive:
             v = arr(f)
             if not np.all(np.isfinite(v)) or np.any(v <= 0):
@@ -352,7 +362,7 @@ class CPGController:
         zeros, zeros3 = jnp.zeros(N_LEGS), jnp.zeros((N_LEGS, 3))
         q0 = self._converter_output(p, lc, z, swing, zeros, zeros3)
         return CPGState(z=z, swing=swing, hold=zeros, elev_on=zeros, elev=zeros, search=zeros, search_n=zeros,
-                        failed=zeros, q_ref=q0, hold_q=q0, offset=zeros3, lam_ob=zeros, q_cmd=q0, kept=zeros,
+                        failed=zeros, q_ref=q0, hold_q=q0, offset=zeros3, lam_ob=zeros, q_cmd=q0, q_meas=q0, kept=zeros, paused=zeros,
                         n_elev=zeros, n_search=zeros, n_found=zeros, n_fail=zeros, depth=zeros,
                         wait_steps=zeros, t=jnp.asarray(0.0))
 
@@ -367,7 +377,9 @@ class CPGController:
         q_sw = (lc.g_sw + elev[:, None] * lc.dg_sw) * x + lc.h_sw + elev[:, None] * lc.dh_sw
         q_st = lc.g_st * x + lc.h_st
         s = swing[:, None]
-        fade = s * jnp.clip(0.5 * (1.0 - x[:, :1]), 0.0, 1.0) + (1.0 - s)
+        # an offset is kept through lift-off and the apex and faded over the descent (x_1 from 0 to 1), so a
+        # foot leaving a step top still clears its clearance above it
+        fade = s * jnp.clip(1.0 - x[:, :1], 0.0, 1.0) + (1.0 - s)
         return s * q_sw + (1.0 - s) * q_st + fade * offset
 
     def _search_output(self, p, lc: LinearConverter, z, q_ref, search_n):
@@ -413,9 +425,17 @@ class CPGController:
         one = jnp.ones(N_LEGS)
 
         if self.feedback:
-            # (1) ATD releases every prolonged leg: swing-prolong -> stance, stance-prolong -> swing.
-            rel = hold * atd
-            to_stance, to_swing = rel * swing, rel * (1.0 - swing)
+            # (1) ATD releases every prolonged leg: swing-prolong -> stance, stance-prolong -> swing; a stance
+            # leg frozen mid-stance by another leg's reflex (`paused`) resumes its stance.
+            toggle = hold * atd * (1.0 - s.paused)
+            to_stance, to_swing = toggle * swing, toggle * (1.0 - swing)
+            # Table 2 aTD: a stance ends when the alien group touches down. Generalised to Eq. 16 gaits: the
+            # legs of the swing slot after the one landing now lift off, wherever they are in their stance.
+            nxt = jnp.mod(p.leg_slot + 1.0, p.duty)
+            follows = self._gate(0.5 - jnp.abs(p.leg_slot[:, None] - nxt[None, :]), jnp.asarray(0.1))
+            forced = (1.0 - swing) * (1.0 - toggle) * atd * jnp.clip(follows @ to_stance, 0.0, 1.0)
+            to_swing = to_swing + forced
+            rel = toggle + forced
             # The leader keeps its position and amplitude and moves on in the new direction at the new
             # Eq. 16 frequency (a swing stopped early by a touchdown turns back from where it stopped).
             w_sw, w_st = self._leader_omegas(p)
@@ -427,13 +447,16 @@ class CPGController:
             swing = swing + rel * (1.0 - 2.0 * swing)
             elev_on, elev = elev_on * (1.0 - to_stance), elev * (1.0 - to_stance)
             q_new = self._converter_output(p, lc, z, swing, elev, jnp.zeros((N_LEGS, 3)))
-            # Offsets carry a searched foothold through the next stance and keep the PEP->swing hand-over
-            # continuous; after an ordinary touchdown the stance converter takes over as it is (an offset
-            # there would ratchet the body down by every early touchdown).
-            carry = to_swing + to_stance * s.kept
-            offset = offset + rel[:, None] * (carry[:, None] * (hold_q - q_new) - offset)
+            # Offsets carry a searched foothold, or one found more than `raised_tolerance` above the feet in
+            # stance (the top of a step), through the next stance, and keep the PEP->swing hand-over continuous.
+            # After an ordinary touchdown the stance converter takes over as it is: an offset there would
+            # ratchet the body down by every slightly early touchdown.
+            raised = g(self._height_above_support(obs, s.q_cmd, s.swing) - p.raised_tolerance, p.temp_height)
+            carry = to_swing + to_stance * (1.0 - (1.0 - s.kept) * (1.0 - raised))
+            offset = offset + rel[:, None] * (carry[:, None] * (s.q_cmd - q_new) - offset)
             kept = s.kept * (1.0 - rel)
-            hold = hold * (1.0 - rel)
+            hold = hold * (1.0 - atd)
+            paused = s.paused * (1.0 - atd)
 
             # (2) A searching leg that touches down has found its foothold: stop, hold the posture, and
             # put the network at the end of swing so the next stance starts in step with the others.
@@ -453,7 +476,10 @@ class CPGController:
             # (3) Elevator reflex, Eqs. 10-11: rising edge of lambda_ob while the leg sweeps forward.
             if self.elevator:
                 rise = lam_ob * (1.0 - s.lam_ob)
-                ert = swing * (1.0 - hold) * (1.0 - search) * g(z[:, 0, 1], tp) * rise
+                # "halfway of the swing": once the leader is past `elevator_window`; at lift-off the foot
+                # still carries its stance load and friction alone can exceed F_contact-x/y.
+                ert = (swing * (1.0 - hold) * (1.0 - search) * g(z[:, 0, 1], tp)
+                       * g(z[:, 0, 0] - p.elevator_window, tp) * rise)
                 scale = self._omegas(p, one, jnp.zeros(N_LEGS))[:, 0] / p.net.omega[0]
                 target = p.elevator_y1 * scale
                 z = z.at[:, 0, 1].add(ert * (target - z[:, 0, 1]))
@@ -462,9 +488,20 @@ class CPGController:
                 n_elev = n_elev + ert
 
             # (4) Early touchdown past the apex aborts the swing: swing-prolong (Table 2 sTD).
-            etd = swing * (1.0 - hold) * (1.0 - search) * lam_td * g(z[:, 0, 0], tp) * g(z[:, 0, 1], tp)
+            # A foot scraping an edge (lambda_ob on) has not landed.
+            etd = (swing * (1.0 - hold) * (1.0 - search) * lam_td * (1.0 - lam_ob)
+                   * g(z[:, 0, 0], tp) * g(z[:, 0, 1], tp))
             hold_q = hold_q + etd[:, None] * (s.q_cmd - hold_q)
             hold = hold + etd * (1.0 - hold)
+
+            # (4b) "The FSM synchronizes the legs by enforcing the leg on the ground come into the Swing/Stance
+            # Prolong state until the leg executing local reflex reaches the touchdown state" (Sect. 5.2):
+            # while any leg runs a reflex, every stance leg freezes where it is.
+            reflex = 1.0 - jnp.prod(1.0 - jnp.clip(elev_on + search + failed, 0.0, 1.0))
+            pz = reflex * (1.0 - swing) * (1.0 - hold)
+            hold_q = hold_q + pz[:, None] * (s.q_cmd - hold_q)
+            hold = hold + pz * (1.0 - hold)
+            paused = paused + pz * (1.0 - paused)
 
         # (5) Integrate the network one control period (RK4); prolonged legs are frozen.
         omega = self._omegas(p, swing, search)
@@ -520,10 +557,23 @@ class CPGController:
         wait = hold * (1.0 - swing) * any_search
         new = CPGState(z=z, swing=swing, hold=hold, elev_on=elev_on, elev=elev, search=search, search_n=search_n,
                        failed=failed, q_ref=q_ref, hold_q=hold_q, offset=offset, lam_ob=lam_ob, q_cmd=q,
-                       kept=kept if self.feedback else s.kept,
+                       q_meas=obs.qpos.reshape(N_LEGS, 3),
+                       kept=kept if self.feedback else s.kept, paused=paused if self.feedback else s.paused,
                        n_elev=n_elev, n_search=n_search, n_found=n_found, n_fail=n_fail, depth=depth,
                        wait_steps=s.wait_steps + wait, t=s.t + self.dt)
         return new, q.reshape(-1)
+
+    def _height_above_support(self, obs, q_cmd, swing):
+        """(6,) m: each foot's height (at its commanded joints) above the mean of the stance feet (at their
+        measured joints), along gravity, from leg kinematics and the torso attitude. Blind: no terrain map,
+        no torso height; a foot that lands on top of a step stands out, a torso that sags as a whole does not."""
+        up_world = jnp.array([0.0, 0.0, 1.0])
+        up = _quat_to_body(obs.torso_quat, up_world[None, :])[0]  # world up in the torso frame
+        z_cmd = leg_to_body(self.robot, leg_fk(self.robot, q_cmd)) @ up
+        z_meas = leg_to_body(self.robot, leg_fk(self.robot, obs.qpos.reshape(N_LEGS, 3))) @ up
+        w = 1.0 - swing
+        z_ref = jnp.sum(w * z_meas) / jnp.maximum(jnp.sum(w), 1e-6)
+        return z_cmd - z_ref
 
     def _reset_followers(self, z, w):
         """Put the followers' rates on the locked curve y_i = -4 x_1 y_1 where w = 1 (module notes)."""
@@ -544,6 +594,7 @@ class CPGController:
         return jnp.where(fl > 0, 5, m)
 
     def trace(self, s: CPGState, obs):
-        """Per-step record for plots: neuron outputs x (6, 3), mode (6,), joint command (6, 3)."""
-        del obs
-        return dict(x=s.z[..., 0], mode=self.mode(s), q_cmd=s.q_cmd)
+        """Per-step record for plots: neuron outputs x (6, 3), leader rate y1 (6,), mode (6,), joint command
+        (6, 3), lambda_ob (6,), elevator ramp (6,), toe force in the torso frame (6, 3) N."""
+        return dict(x=s.z[..., 0], y1=s.z[:, 0, 1], mode=self.mode(s), q_cmd=s.q_cmd, lam_ob=s.lam_ob, elev=s.elev,
+                    force=_quat_to_body(obs.torso_quat, obs.foot_force), quat=obs.torso_quat)

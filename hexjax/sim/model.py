@@ -93,6 +93,11 @@ class SimModel:
         self.ncon = geoms.shape[0]
         self.contact_foot = np.stack([(geoms == g).any(1) for g in self.foot_geoms], 1).astype(np.float32)
         self.contact_pad = np.stack([(geoms == g).any(1) for g in self.pad_geoms], 1).astype(np.float32)
+        # MuJoCo's contact force acts on geom2 from geom1. MJX orders each pair by geom type, so the robot
+        # geom is geom2 against the ground plane but geom1 against a terrain box (sphere/capsule < box):
+        # +1 where the robot geom is geom2, -1 where it is geom1.
+        robot = np.concatenate([self.foot_geoms, self.pad_geoms])
+        self.contact_sign = np.where(np.isin(geoms[:, 1], robot), 1.0, -1.0).astype(np.float32)
         dims = np.asarray(d._impl.contact.dim) if hasattr(d._impl.contact, "dim") else None
         if dims is not None and not np.all(dims == 3):
             raise RuntimeError("hexjax expects condim 3 on every contact pair")
@@ -201,8 +206,8 @@ def read_obs(sm: SimModel, sensors: SensorConfig, m, d) -> Obs:
     efc_force (pyramidal cone decoded as in MuJoCo's mj_contactForce)."""
     force, idx = mjx._src.support.contact_force_dim(m, d, 3)
     frames = d._impl.contact.frame[idx]  # (n, 3, 3): rows normal, tangent1, tangent2
-    world = jnp.einsum("ni,nij->nj", force[:, :3], frames)
-    # contact force acts on geom2 (robot geom in every pair) from geom1 (terrain), along the normal
+    world = jnp.einsum("ni,nij->nj", force[:, :3], frames) * jnp.asarray(sm.contact_sign[idx])[:, None]
+    # now the force on the robot geom from the terrain, whichever side of the pair the robot geom is on
     foot_mask, pad_mask = jnp.asarray(sm.contact_foot[idx]), jnp.asarray(sm.contact_pad[idx])
     foot_force = foot_mask.T @ world  # (6, 3)
     foot_normal = foot_mask.T @ force[:, 0]

@@ -1,0 +1,195 @@
+"""The Yu 2019 CPG controller against a kinematic stand-in world (no physics): feet follow the joint
+commands exactly, the ground under each leg is a height, contact forces are a stiff penalty. Fast and
+deterministic, so the FSM, the reflexes and the hard/smooth forms can be checked step by step (jitted)."""
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from hexjax.control.cpg import MODE_NAMES, TRIPOD_GROUP, CPGController, converter_points, linear_converter
+from hexjax.control.vdp import locked_state
+from hexjax.robot import forward_sign, get_robot, leg_fk
+from hexjax.sim.model import Obs
+
+ROBOT = get_robot("yu2019")
+RF = 3  # the paper's Leg4: right front
+
+
+def _obs(q, floor, wall_x, wall_top, t):
+    """Obs of the stand-in world. q (6, 3) joints = measured; floor (6,) ground height in each leg frame,
+    m; a wall at forward distance wall_x (6,) up to wall_top (6,) pushes back on a foot inside it."""
+    p = leg_fk(ROBOT, q)
+    fwd = p[:, 1] * jnp.asarray(forward_sign())
+    pen = floor - p[:, 2]
+    fz = jnp.where(pen > 0, 15.0 + 2000.0 * pen, 0.0)
+    in_wall = (fwd > wall_x) & (p[:, 2] < wall_top)
+    fx = jnp.where(in_wall, -25.0, 0.0)
+    force = jnp.stack([fx, jnp.zeros(6), fz], -1)
+    return Obs(qpos=q.reshape(-1), qvel=jnp.zeros(18), torso_pos=jnp.zeros(3),
+               torso_quat=jnp.array([1.0, 0.0, 0.0, 0.0]), foot_force=force, foot_contact=fz > 0.5,
+               tactile_force=jnp.zeros(6), tactile=jnp.zeros(6, bool), time=t)
+
+
+def _walk(ctrl, params, seconds, floor_fn, wall_x=None, wall_top=None):
+    """Run the controller in the stand-in world; returns the stacked states (T, ...)."""
+    n = int(round(seconds / ctrl.dt))
+    wall_x = jnp.full(6, 10.0) if wall_x is None else wall_x
+    wall_top = jnp.full(6, -10.0) if wall_top is None else wall_top
+
+    def body(s, i):
+        t = i * ctrl.dt
+        obs = _obs(s.q_cmd, floor_fn(t), wall_x, wall_top, t)
+        s, _ = ctrl.step(params, s, obs)
+        return s, s
+
+    @jax.jit
+    def run(p):
+        s0 = ctrl.init(p, None)
+        return jax.lax.scan(body, s0, jnp.arange(n))[1]
+
+    return run(params)
+
+
+def _z_aep(ctrl, p):
+    """Ground height in the leg frames: the nominal AEP height raised 2 mm, because in the physics model
+    the loaded servos let the torso sit a few mm low (a foot swung to the nominal AEP then presses)."""
+    return -(float(p.body_height) - ROBOT.foot_radius) + 0.002
+
+
+def test_converter_hits_aep_pep_apex_and_stance_midpoint():
+    """Eq. 6 coefficients from IK (Sect. 3.2): on the locked cycle the converter puts the foot on the
+    four design points within 1 mm."""
+    ctrl = CPGController(ROBOT)
+    p = ctrl.default_params()
+    lc = linear_converter(ROBOT, p, ctrl.stance_radial)
+    pts = np.asarray(converter_points(ROBOT, p.step_length, p.clearance, p.body_height, ctrl.stance_radial))
+    w = float(p.net.omega[0])
+    zero = jnp.zeros(6)
+    cases = [  # (leader phase, swing?, design point index) ; x1 = cos(theta)
+        (math.pi, 1.0, 1), (1.5 * math.pi, 1.0, 3), (0.0, 1.0, 0), (0.5 * math.pi, 0.0, 2), (0.0, 0.0, 0)]
+    for theta, sw, k in cases:
+        z = locked_state(jnp.full(6, theta), w)
+        q = ctrl._converter_output(p, lc, z, jnp.full(6, sw), zero, jnp.zeros((6, 3)))
+        np.testing.assert_allclose(np.asarray(leg_fk(ROBOT, q)), pts[:, k], atol=1e-3)
+
+
+def test_flat_stand_in_world_walks_a_regular_tripod():
+    """No reflex fires on flat ground; the two tripod groups alternate, each leg swinging once per 5 s
+    (T_g = 2 pi / omega_1, Sect. 6.1.1), and the FSM holds are brief hand-overs."""
+    ctrl = CPGController(ROBOT)
+    p = ctrl.default_params()
+    z0 = _z_aep(ctrl, p)
+    st = _walk(ctrl, p, 20.0, lambda t: jnp.full(6, z0))
+    fs = jax.tree_util.tree_map(lambda a: np.asarray(a[-1]), st)
+    assert fs.n_elev.sum() == 0 and fs.n_search.sum() == 0
+    swing = np.asarray(st.swing) > 0.5
+    lifts = (np.diff(swing.astype(int), axis=0) == 1).sum(0)
+    assert np.all((lifts >= 3) & (lifts <= 4)), lifts  # 20 s / 5 s, first swing starts at t = 0
+    both = swing[:, TRIPOD_GROUP == 0].all(1) & swing[:, TRIPOD_GROUP == 1].any(1)
+    assert not both.any()  # never a leg of each group in the air at once
+
+
+@pytest.mark.parametrize("depth,found", [(0.018, True), (0.040, True), (0.080, False)])
+def test_searching_reflex_depths_and_fsm(depth, found):
+    """Sect. 6.1.2 in the stand-in world: from t = 3 s the ground under RF (the paper's Leg4) is `depth`
+    lower. 18 and 40 mm: the search finds it, the recorded depth is within 3 mm of it, and the gait goes
+    on. 80 mm: beyond reach, so after `search_periods` the leg is back at its AEP posture (q_ref) and
+    gives up; meanwhile the alien tripod stays in stance-prolong."""
+    ctrl = CPGController(ROBOT)
+    p = ctrl.default_params()
+    z0 = _z_aep(ctrl, p)
+
+    def floor(t):
+        return jnp.full(6, z0).at[RF].set(jnp.where(t > 3.0, z0 - depth, z0))
+
+    st = _walk(ctrl, p, 60.0, floor)
+    fs = jax.tree_util.tree_map(lambda a: np.asarray(a[-1]), st)
+    mode = np.asarray(jax.vmap(CPGController.mode)(st))
+    searching = mode[:, RF] == MODE_NAMES.index("search")
+    assert searching.any() and fs.n_search[RF] >= 1
+    alien = TRIPOD_GROUP != TRIPOD_GROUP[RF]
+    # whenever RF has searched for more than 0.5 s, every alien leg waits in stance-prolong
+    idx = np.nonzero(searching)[0]
+    late = idx[idx > idx[0] + int(0.5 / ctrl.dt)]
+    assert np.all(mode[late][:, alien] == MODE_NAMES.index("stance-prolong"))
+    if found:
+        assert fs.n_found[RF] >= 1 and fs.n_fail.sum() == 0
+        assert abs(fs.depth[RF] - depth) < 0.003, fs.depth[RF]
+        # the walk resumed: every leg swung again after the foothold was found
+        t_found = np.nonzero(np.diff(np.asarray(st.n_found[:, RF])) > 0)[0][0]
+        assert np.all(np.asarray(st.swing[t_found:]).max(0) > 0.5)
+    else:
+        assert fs.n_fail[RF] == 1 and fs.failed[RF] > 0.5 and fs.n_found[RF] == 0
+        assert mode[-1, RF] == MODE_NAMES.index("search-failed")
+        np.testing.assert_allclose(fs.q_cmd[RF], fs.q_ref[RF], atol=1e-6)
+        assert np.all(mode[-1][alien] == MODE_NAMES.index("stance-prolong"))
+        # the search lasted search_periods slowed leader periods (2 pi / (0.5 omega_1) = 10 s each)
+        assert abs(searching.sum() * ctrl.dt - ctrl.search_periods * 10.0) < 1.0
+
+
+def test_elevator_reflex_reverses_leader_and_raises_clearance():
+    """Eqs. 10-11: RF meets a 40 mm wall 1 cm before its AEP. On the rising edge of lambda_ob the leader's
+    y_1 jumps to -1 (retraction), and the regenerated swing reaches the 80 mm clearance, clearing the
+    wall; without the reflex the foot stays pressed against it."""
+    ctrl = CPGController(ROBOT)
+    p = ctrl.default_params()
+    z0 = _z_aep(ctrl, p)
+    wall_x = jnp.full(6, 10.0).at[RF].set(0.5 * float(p.step_length) - 0.01)
+    wall_top = jnp.full(6, -10.0).at[RF].set(z0 + 0.04)
+    st = _walk(ctrl, p, 12.0, lambda t: jnp.full(6, z0), wall_x, wall_top)
+    n_elev = np.asarray(st.n_elev[:, RF])
+    k = int(np.nonzero(np.diff(n_elev) > 0)[0][0]) + 1  # first step with the reflex fired
+    assert abs(float(st.z[k, RF, 0, 1]) - (-1.0)) < 0.1  # y1 set to -1 (then one RK4 step)
+    assert float(st.z[k - 1, RF, 0, 1]) > 0
+    z_foot = np.asarray(leg_fk(ROBOT, st.q_cmd[k:, RF]))[:, 2]
+    assert z_foot.max() - z0 > 0.075  # regenerated clearance ~80 mm
+    assert np.asarray(st.elev[k:, RF]).max() == pytest.approx(1.0)
+    off = CPGController(ROBOT, elevator=False)
+    st_off = _walk(off, p, 12.0, lambda t: jnp.full(6, z0), wall_x, wall_top)
+    assert np.asarray(st_off.n_elev).sum() == 0
+    assert np.asarray(leg_fk(ROBOT, st_off.q_cmd[:, RF]))[:, 2].max() - z0 < 0.045
+
+
+def test_smooth_form_tends_to_hard_form():
+    """Every gate has a temperature; as they go to zero the smooth controller's joint commands approach
+    the hard one's in a run with a search (18 mm ditch) and elevator events (wall)."""
+    z0 = -(ROBOT.hip_height - ROBOT.foot_radius) + 0.002
+
+    def floor(t):
+        return jnp.full(6, z0).at[RF].set(jnp.where(t > 3.0, z0 - 0.018, z0))
+
+    hard = CPGController(ROBOT)
+    p = hard.default_params()
+    wall_x = jnp.full(6, 10.0).at[1].set(0.5 * float(p.step_length) - 0.01)
+    wall_top = jnp.full(6, -10.0).at[1].set(z0 + 0.04)
+    q_hard = np.asarray(_walk(hard, p, 25.0, floor, wall_x, wall_top).q_cmd)
+    smooth = CPGController(ROBOT, smooth=True)
+    errs = []
+    for scale in (1.0, 0.1, 0.01, 0.001):
+        ps = p.replace(temp_force=p.temp_force * scale, temp_phase=p.temp_phase * scale,
+                       temp_height=p.temp_height * scale)
+        q_s = np.asarray(_walk(smooth, ps, 25.0, floor, wall_x, wall_top).q_cmd)
+        errs.append(np.abs(q_s - q_hard).max())
+    print("smooth-hard max |dq| per temperature scale 1, 0.1, 0.01, 0.001:", errs)
+    assert errs[-1] < 0.02, errs  # rad
+    assert errs[-1] < errs[0]
+
+
+def test_bad_params_raise_before_tracing():
+    ctrl = CPGController(ROBOT)
+    p = ctrl.default_params()
+    with pytest.raises(ValueError, match="cpg.clearance"):
+        ctrl.validate_params(p.replace(clearance=jnp.asarray(-0.01)))
+    with pytest.raises(ValueError, match="cpg.f_contact"):
+        ctrl.validate_params(p.replace(f_contact=jnp.array([10.0, -1.0, 2.0])))
+    with pytest.raises(ValueError, match="out of reach"):
+        ctrl.validate_params(p.replace(elevated_clearance=jnp.asarray(0.5)))
+    with pytest.raises(ValueError, match="cpg.duty"):
+        ctrl.validate_params(p.replace(duty=jnp.asarray(1.0)))
+    with pytest.raises(ValueError, match="cpg.gait"):
+        CPGController(ROBOT, gait="gallop")
+    with pytest.raises(ValueError, match="cpg.stance_radial"):
+        CPGController(ROBOT, stance_radial=-0.1)
