@@ -161,7 +161,8 @@ def _step(spec: TerrainSpec, key) -> Terrain:
     h = jax.random.uniform(k1, (), minval=spec.height_range[0], maxval=spec.height_range[1])
     length = jax.random.uniform(k2, (), minval=spec.step_length_range[0], maxval=spec.step_length_range[1])
     x0 = spec.start_x + jax.random.uniform(k3, ()) * 0.25 * spec.length
-    w = 0.5 * spec.width
+    # the step runs 0.5 m past the corridor's side, so a robot that veers cannot walk round it
+    w = 0.5 * spec.width + 0.5
     y_lo, y_hi = {"right": (-w, -0.06), "left": (0.06, w), "full": (-w, w)}[spec.step_side]
     pos = jnp.array([[x0 + 0.5 * length, 0.5 * (y_lo + y_hi), 0.5 * h]])
     half = jnp.array([[0.5 * length, 0.5 * (y_hi - y_lo), 0.5 * h]])

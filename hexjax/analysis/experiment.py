@@ -41,7 +41,7 @@ EXPERIMENTS = {
     # Sect. 6.1.1: 40 mm step on the right of the path, F_contact-x/y 10 N, clearance 40 -> 80 mm.
     "yu2019-step": ExperimentSpec(
         "yu2019-step", ("step40",), 90.0,
-        (("reflexes", {}), ("no-elevator", {"elevator": False})),
+        (("reflexes", {}), ("no-elevator", {"elevator": False}), ("blind", {"feedback": False})),
         terrain_overrides=(("step_length_range", (0.15, 0.3)),)),
     # Sect. 6.1.2: one ditch across the path, 18 / 40 / 80 mm deep, F_contact-z 2 N.
     "yu2019-ditch": ExperimentSpec(
@@ -59,12 +59,24 @@ def _obstacle_end(terrain, kind: str) -> np.ndarray:
     return pos[:, 1, 0] - half[:, 1, 0]  # the slab after the ditch starts where the ditch ends
 
 
+def _climbed(s, terrain, robot) -> np.ndarray:
+    """(B,) a foot stood on top of the step (inside its footprint, at its height) at some point."""
+    feet = np.asarray(s.foot_trace)  # (B, T, 6, 3)
+    pos, half = np.asarray(terrain.box_pos)[:, None, None, 0], np.asarray(terrain.box_half)[:, None, None, 0]
+    inside = np.all(np.abs(feet[..., :2] - pos[..., :2]) < half[..., :2], axis=-1)
+    on_top = feet[..., 2] > pos[..., 2] + half[..., 2] + robot.foot_radius - 0.005
+    return np.any(inside & on_top, axis=(1, 2))
+
+
 def _summarise(ctrl: CPGController, robot, s, terrain, kind: str, stumble_tilt: float) -> Dict:
     fs = jax.tree_util.tree_map(np.asarray, s.final_state)
     end_x = np.asarray(s.end_pose[:, 0])
     far = _obstacle_end(terrain, kind)
-    # crossed: the hind hips are past the obstacle's far end
+    # crossed: the hind hips are past the obstacle's far end (and, for the step, a foot stood on top of
+    # it, so a robot that veered round the end of the step does not count)
     crossed = end_x - robot.hip_x > far
+    if kind == "step" and s.foot_trace is not None:
+        crossed = crossed & _climbed(s, terrain, robot)
     fell = np.asarray(s.fell)
     modes = np.asarray(ctrl.mode(s.final_state))
     n_found = fs.n_found.sum(-1)

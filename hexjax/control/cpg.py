@@ -28,10 +28,14 @@ Readings where the paper is silent or ambiguous (each repeated in docs/cpg.md):
   * "Multi-step searching" (Fig. 9b, the 40 mm ditch) deepens the search: each further period of the
     slowed leader lowers the centre of the beta/gamma oscillation by one more amplitude, for at most
     `search_periods` periods; then the leg returns to its AEP (Fig. 9c) and waits.
-  * "Retains the current posture": a leg in swing- or stance-prolong holds its last joint command. When
-    it is released the converter continues from that posture: the difference is carried as a joint
-    offset through the next stance and faded out over the next swing, which is how a changed AEP is
-    "corrected in the next swing phase" (Sect. 6.1.2).
+  * "Retains the current posture": a leg in swing- or stance-prolong holds its last joint command. After
+    a foothold found by a search, or one well above the other feet (a step top), the converter continues
+    from that posture: the difference is a joint offset carried through the stance and the next lift-off
+    and faded over the next descent, which is how a changed AEP is "corrected in the next swing phase"
+    (Sect. 6.1.2).
+  * ATD is "all legs get footholds" (no leg swinging, searching or given up), not six toe forces above
+    F_contact-z; at ATD the next swing slot lifts off (aTD); while any leg runs a reflex every stance leg
+    freezes (Sect. 5.2); the elevator reflex fires once per swing.
 """
 
 from __future__ import annotations
@@ -432,7 +436,8 @@ class CPGController:
             # Table 2 aTD: a stance ends when the alien group touches down. Generalised to Eq. 16 gaits: the
             # legs of the swing slot after the one landing now lift off, wherever they are in their stance.
             nxt = jnp.mod(p.leg_slot + 1.0, p.duty)
-            follows = self._gate(0.5 - jnp.abs(p.leg_slot[:, None] - nxt[None, :]), jnp.asarray(0.1))
+            # slots are whole numbers: matching them is structure, not a decision, so it is exact in both forms
+            follows = (jnp.abs(p.leg_slot[:, None] - nxt[None, :]) < 0.5).astype(jnp.float32)
             forced = (1.0 - swing) * (1.0 - toggle) * atd * jnp.clip(follows @ to_stance, 0.0, 1.0)
             to_swing = to_swing + forced
             rel = toggle + forced
@@ -468,7 +473,7 @@ class CPGController:
             z_end = locked_state(jnp.zeros(N_LEGS), self._omegas(p, one, jnp.zeros(N_LEGS))[:, 0])
             z = z + found[:, None, None] * (z_end - z)
             hold_q = hold_q + found[:, None] * (s.q_cmd - hold_q)
-            # the search posture is now the converter offset at the AEP (faded over the next swing)
+            # the leg holds the posture it found; at release it becomes the stance offset (`kept`)
             hold = hold + found * (1.0 - hold)
             kept = kept + found * (1.0 - kept)
             search = search * (1.0 - found)
@@ -478,7 +483,10 @@ class CPGController:
                 rise = lam_ob * (1.0 - s.lam_ob)
                 # "halfway of the swing": once the leader is past `elevator_window`; at lift-off the foot
                 # still carries its stance load and friction alone can exceed F_contact-x/y.
-                ert = (swing * (1.0 - hold) * (1.0 - search) * g(z[:, 0, 1], tp)
+                # Once per swing: a regenerated swing that meets the face again goes on and lands in front
+                # of it (the next swing then meets the face earlier and clears it), instead of retracting
+                # again and again against a face near its AEP.
+                ert = (swing * (1.0 - hold) * (1.0 - search) * (1.0 - elev_on) * g(z[:, 0, 1], tp)
                        * g(z[:, 0, 0] - p.elevator_window, tp) * rise)
                 scale = self._omegas(p, one, jnp.zeros(N_LEGS))[:, 0] / p.net.omega[0]
                 target = p.elevator_y1 * scale
@@ -538,7 +546,7 @@ class CPGController:
             hold = hold + end_st * (1.0 - hold)
             # A search period ends when the slowed leader is back at the AEP: search deeper, or give up.
             period = search * cross_fwd_end * (1.0 - srt)
-            more = self._gate(self.search_periods - 1.5 - search_n, jnp.asarray(0.25))
+            more = self._gate(self.search_periods - 1.5 - search_n, tp)
             search_n = search_n + period * more
             give_up = period * (1.0 - more)
             failed = failed + give_up * (1.0 - failed)
