@@ -258,6 +258,7 @@ PRESETS = {
     "high-small": TerrainSpec(kind="obstacles", **_HIGH, **_SMALL),
     "high-large": TerrainSpec(kind="obstacles", **_HIGH, **_LARGE),
     "step40": TerrainSpec(kind="step", height_range=(0.04, 0.04)),
+    "step50": TerrainSpec(kind="step", height_range=(0.05, 0.05)),
     "ditch18": TerrainSpec(kind="ditch", height_range=(0.018, 0.018)),
     "ditch40": TerrainSpec(kind="ditch", height_range=(0.04, 0.04)),
     "ditch80": TerrainSpec(kind="ditch", height_range=(0.08, 0.08)),

@@ -72,7 +72,7 @@ def test_converter_hits_aep_pep_apex_and_stance_midpoint():
         (math.pi, 1.0, 1), (1.5 * math.pi, 1.0, 3), (0.0, 1.0, 0), (0.5 * math.pi, 0.0, 2), (0.0, 0.0, 0)]
     for theta, sw, k in cases:
         z = locked_state(jnp.full(6, theta), w)
-        q = ctrl._converter_output(p, lc, z, jnp.full(6, sw), zero, jnp.zeros((6, 3)))
+        q = ctrl._converter_output(p, lc, z, jnp.full(6, sw), zero, jnp.zeros((6, 3)), jnp.zeros((6, 3)), zero)
         np.testing.assert_allclose(np.asarray(leg_fk(ROBOT, q)), pts[:, k], atol=1e-3)
 
 
@@ -90,6 +90,44 @@ def test_flat_stand_in_world_walks_a_regular_tripod():
     assert np.all((lifts >= 3) & (lifts <= 4)), lifts  # 20 s / 5 s, first swing starts at t = 0
     both = swing[:, TRIPOD_GROUP == 0].all(1) & swing[:, TRIPOD_GROUP == 1].any(1)
     assert not both.any()  # never a leg of each group in the air at once
+
+
+def test_raised_foothold_sets_the_level_of_stance_and_next_swing():
+    """A step top under RF (40 mm up from t = 3 s; down again from t = 30 s). The first swing that meets it
+    lands early and records the foothold's level (40 mm within 3 mm); from then on RF's swings end on the
+    top at the AEP (full strides, no early touchdown, no search) and, from the next touchdown on, its
+    stance holds the foot on the top (the first touchdown is detected at the apex, 2-3 mm into the top).
+    When the top ends the foot finds no ground at its AEP and the searching reflex takes it down (the
+    third period reaches 40 mm), after which the level is zero again."""
+    ctrl = CPGController(ROBOT)
+    p = ctrl.default_params()
+    z0 = _z_aep(ctrl, p)
+
+    def floor(t):
+        return jnp.full(6, z0).at[RF].set(jnp.where((t > 3.0) & (t < 30.0), z0 + 0.04, z0))
+
+    st = _walk(ctrl, p, 80.0, floor)
+    t = np.arange(st.t.shape[0]) * ctrl.dt
+    level = np.asarray(st.level[:, RF])
+    first = np.nonzero(np.abs(level - 0.04) < 0.003)[0]
+    assert first.size and t[first[0]] < 12.0, level.max()
+    on_top = (t > t[first[0]]) & (t < 30.0)
+    assert np.all(np.abs(level[on_top] - 0.04) < 0.003)
+    # stance on the top: the foot stays on it (no gap above, no push-through deeper than 2 mm)
+    z_foot = np.asarray(leg_fk(ROBOT, st.q_cmd[:, RF]))[:, 2]
+    stance = on_top & (t > t[first[0]] + 5.0) & (np.asarray(st.swing[:, RF]) < 0.5) & (np.asarray(st.hold[:, RF]) < 0.5)
+    assert stance.sum() > 100
+    np.testing.assert_allclose(z_foot[stance], z0 + 0.04, atol=0.002)
+    # swings on the top run to the AEP: the leader reaches x_1 ~ 1 before each touchdown
+    x1 = np.asarray(st.z[:, RF, 0, 0])
+    sw = np.asarray(st.swing[:, RF]) > 0.5
+    ends = np.nonzero(sw[:-1] & ~sw[1:] & on_top[1:])[0]
+    assert ends.size >= 2 and np.all(x1[ends] > 0.95), x1[ends]
+    n_search = np.asarray(st.n_search[:, RF])
+    assert n_search[on_top].max() == n_search[first[0]]
+    # down again: found by a search, level back to ~0
+    assert n_search[-1] > n_search[first[0]] and np.asarray(st.n_found[-1, RF]) >= 1
+    assert abs(level[-1]) < 0.003, level[-1]
 
 
 @pytest.mark.parametrize("depth,found", [(0.018, True), (0.040, True), (0.080, False)])

@@ -29,10 +29,14 @@ Readings where the paper is silent or ambiguous (each repeated in docs/cpg.md):
     slowed leader lowers the centre of the beta/gamma oscillation by one more amplitude, for at most
     `search_periods` periods; then the leg returns to its AEP (Fig. 9c) and waits.
   * "Retains the current posture": a leg in swing- or stance-prolong holds its last joint command. After
-    a foothold found by a search, or one well above the other feet (a step top), the converter continues
-    from that posture: the difference is a joint offset carried through the stance and the next lift-off
-    and faded over the next descent, which is how a changed AEP is "corrected in the next swing phase"
-    (Sect. 6.1.2).
+    a foothold found by a search the converter continues from that posture: the difference is a joint
+    offset carried through the stance and the next lift-off and faded over the next descent, which is how
+    a changed AEP is "corrected in the next swing phase" (Sect. 6.1.2).
+  * Body height per leg (Sect. 3.2 sets the converter from the body height over the ground): a touchdown
+    well above the other feet (a step top) records that leg's foothold `level`, measured along gravity
+    against the stance feet. Its stance moves to the converter's posture at that level by mid-stance and
+    its next swing descends to the same level, so a leg on a step top keeps full strides and the torso
+    stays level; where the top ends, the searching reflex takes the foot down.
   * ATD is "all legs get footholds" (no leg swinging, searching or given up), not six toe forces above
     F_contact-z; at ATD the next swing slot lifts off (aTD); while any leg runs a reflex every stance leg
     freezes (Sect. 5.2); the elevator reflex fires once per swing.
@@ -122,6 +126,10 @@ class CPGState:
     q_ref          joints when the search began (alpha, beta, gamma (t_td^-) of Eq. 14)
     hold_q, offset held posture; converter offset after a release
     kept           1 while a leg holds a foothold found by a search (its posture becomes the offset)
+    level          m: height of each leg's raised foothold above the ground datum of the stance feet (0 on
+                   level ground, +0.04 on a 40 mm step top); its stance holds the foot there and its next
+                   swing descends to it
+    searched       1 while a leg stands on a foothold found by a search: its stance holds the found posture
     paused         1 for a stance leg frozen mid-stance while another leg runs a reflex
     lam_ob         lambda_ob of the previous step (the reflex fires on its rising edge)
     q_cmd, q_meas  last joint command; joint angles measured at the last step
@@ -145,6 +153,8 @@ class CPGState:
     q_cmd: jax.Array
     q_meas: jax.Array
     kept: jax.Array
+    level: jax.Array
+    searched: jax.Array
     paused: jax.Array
     n_elev: jax.Array
     n_search: jax.Array
@@ -364,9 +374,9 @@ class CPGController:
         z, swing = self.initial_state_network(p)
         lc = linear_converter(self.robot, p, self.stance_radial)
         zeros, zeros3 = jnp.zeros(N_LEGS), jnp.zeros((N_LEGS, 3))
-        q0 = self._converter_output(p, lc, z, swing, zeros, zeros3)
+        q0 = self._converter_output(p, lc, z, swing, zeros, zeros3, zeros3, zeros)
         return CPGState(z=z, swing=swing, hold=zeros, elev_on=zeros, elev=zeros, search=zeros, search_n=zeros,
-                        failed=zeros, q_ref=q0, hold_q=q0, offset=zeros3, lam_ob=zeros, q_cmd=q0, q_meas=q0, kept=zeros, paused=zeros,
+                        failed=zeros, q_ref=q0, hold_q=q0, offset=zeros3, lam_ob=zeros, q_cmd=q0, q_meas=q0, kept=zeros, level=zeros, searched=zeros, paused=zeros,
                         n_elev=zeros, n_search=zeros, n_found=zeros, n_fail=zeros, depth=zeros,
                         wait_steps=zeros, t=jnp.asarray(0.0))
 
@@ -376,15 +386,26 @@ class CPGController:
 
     # Converter (Eqs. 6, 11, 14) --------------------------------------------------------------------
     @staticmethod
-    def _converter_output(p, lc: LinearConverter, z, swing, elev, offset):
+    def _converter_output(p, lc: LinearConverter, z, swing, elev, offset, dq_level, searched):
         x = z[..., 0]
         q_sw = (lc.g_sw + elev[:, None] * lc.dg_sw) * x + lc.h_sw + elev[:, None] * lc.dh_sw
         q_st = lc.g_st * x + lc.h_st
         s = swing[:, None]
-        # an offset is kept through lift-off and the apex and faded over the descent (x_1 from 0 to 1), so a
-        # foot leaving a step top still clears its clearance above it
-        fade = s * jnp.clip(1.0 - x[:, :1], 0.0, 1.0) + (1.0 - s)
-        return s * q_sw + (1.0 - s) * q_st + fade * offset
+        # An offset is kept through lift-off and the apex and faded over the descent (x_1 from 0 to 1), so a
+        # foot leaving a step top still clears its clearance above it. Over the same descent the foot moves
+        # to the level of the foothold it left (dq_level, zero on level ground): on a step top it lands
+        # on the top at its AEP with a full stride; where the top ends the foot meets no ground at the AEP
+        # and the searching reflex takes it down.
+        fall = jnp.clip(1.0 - x[:, :1], 0.0, 1.0)
+        q_swing = q_sw + fall * offset + (1.0 - fall) * dq_level
+        # In stance the touchdown offset hands over to the level posture by mid-stance (x_1 from 1 to 0):
+        # the torso returns to its nominal height and attitude over feet at their recorded levels, where
+        # the raw touchdown posture would keep any tilt the torso had at the touchdown. A foothold found by
+        # a search is held as found through the stance (the next swing aims for the nominal AEP again, so
+        # searches do not chain below the search range).
+        w = searched[:, None] + (1.0 - searched[:, None]) * jnp.clip(x[:, :1], 0.0, 1.0)
+        q_stance = q_st + dq_level + w * (offset - dq_level)
+        return s * q_swing + (1.0 - s) * q_stance
 
     def _search_output(self, p, lc: LinearConverter, z, q_ref, search_n):
         """Eq. 14 with mu of Eq. 15, around the joints q_ref where the search began (see module notes)."""
@@ -424,6 +445,8 @@ class CPGController:
         atd = jnp.prod(1.0 - jnp.clip(airborne, 0.0, 1.0))
 
         elev_on, elev, offset, hold_q, q_ref = s.elev_on, s.elev, s.offset, s.hold_q, s.q_ref
+        level, searched = s.level, s.searched
+        dq_level = self._level_offset(p, level)
         search_n = s.search_n
         n_elev, n_search, n_found, n_fail, depth = s.n_elev, s.n_search, s.n_found, s.n_fail, s.depth
         one = jnp.ones(N_LEGS)
@@ -451,15 +474,23 @@ class CPGController:
             z = self._reset_followers(z, rel)
             swing = swing + rel * (1.0 - 2.0 * swing)
             elev_on, elev = elev_on * (1.0 - to_stance), elev * (1.0 - to_stance)
-            q_new = self._converter_output(p, lc, z, swing, elev, jnp.zeros((N_LEGS, 3)))
+            zero3 = jnp.zeros((N_LEGS, 3))
+            q_new = self._converter_output(p, lc, z, swing, elev, zero3, zero3, searched)  # the bare converter
             # Offsets carry a searched foothold, or one found more than `raised_tolerance` above the feet in
             # stance (the top of a step), through the next stance, and keep the PEP->swing hand-over continuous.
             # After an ordinary touchdown the stance converter takes over as it is: an offset there would
             # ratchet the body down by every slightly early touchdown.
-            raised = g(self._height_above_support(obs, s.q_cmd, s.swing) - p.raised_tolerance, p.temp_height)
+            above = self._height_above_support(obs, s.q_cmd, s.swing, s.level)
+            raised = g(above - p.raised_tolerance, p.temp_height)
             carry = to_swing + to_stance * (1.0 - (1.0 - s.kept) * (1.0 - raised))
             offset = offset + rel[:, None] * (carry[:, None] * (s.q_cmd - q_new) - offset)
             kept = s.kept * (1.0 - rel)
+            # A leg released into stance records the height of a raised foothold (more than `raised_tolerance`
+            # up): measured afresh along gravity against the other feet at every touchdown, so a sagging or
+            # tilted torso does not build up in it. A searched foothold is held as found instead.
+            level = level + to_stance * (raised * (1.0 - s.kept) * above - level)
+            searched = s.searched + to_stance * (s.kept - s.searched)
+            dq_level = self._level_offset(p, level)
             hold = hold * (1.0 - atd)
             paused = s.paused * (1.0 - atd)
 
@@ -526,7 +557,7 @@ class CPGController:
         cross_fwd_end = g(y_old, tp) * g(-y_new, tp) * g(x_new, tp)  # leader at its AEP turning point
         cross_back_end = g(-y_old, tp) * g(y_new, tp) * g(-x_new, tp)  # leader at its PEP turning point
 
-        q_lc = self._converter_output(p, lc, z, swing, elev, offset)
+        q_lc = self._converter_output(p, lc, z, swing, elev, offset, dq_level, searched)
         q_search = self._search_output(p, lc, z, q_ref, search_n)
 
         if self.feedback:
@@ -557,7 +588,7 @@ class CPGController:
             q_search = self._search_output(p, lc, z, q_ref, search_n)
         else:
             swing = (z[:, 0, 1] > 0).astype(jnp.float32) if not self.smooth else jax.nn.sigmoid(z[:, 0, 1] / tp)
-            q_lc = self._converter_output(p, lc, z, swing, elev, offset)
+            q_lc = self._converter_output(p, lc, z, swing, elev, offset, dq_level, searched)
 
         q_free = search[:, None] * q_search + (1.0 - search[:, None]) * q_lc
         q = hold[:, None] * hold_q + (1.0 - hold[:, None]) * q_free
@@ -566,21 +597,31 @@ class CPGController:
         new = CPGState(z=z, swing=swing, hold=hold, elev_on=elev_on, elev=elev, search=search, search_n=search_n,
                        failed=failed, q_ref=q_ref, hold_q=hold_q, offset=offset, lam_ob=lam_ob, q_cmd=q,
                        q_meas=obs.qpos.reshape(N_LEGS, 3),
-                       kept=kept if self.feedback else s.kept, paused=paused if self.feedback else s.paused,
+                       kept=kept if self.feedback else s.kept, level=level, searched=searched, paused=paused if self.feedback else s.paused,
                        n_elev=n_elev, n_search=n_search, n_found=n_found, n_fail=n_fail, depth=depth,
                        wait_steps=s.wait_steps + wait, t=s.t + self.dt)
         return new, q.reshape(-1)
 
-    def _height_above_support(self, obs, q_cmd, swing):
-        """(6,) m: each foot's height (at its commanded joints) above the mean of the stance feet (at their
-        measured joints), along gravity, from leg kinematics and the torso attitude. Blind: no terrain map,
-        no torso height; a foot that lands on top of a step stands out, a torso that sags as a whole does not."""
+    def _level_offset(self, p: CPGParams, level):
+        """(6, 3) rad: joints that move each leg's nominal AEP up by `level` (6,) m in the leg frame."""
+        aep = converter_points(self.robot, p.step_length, p.clearance, p.body_height, self.stance_radial)[:, 0]
+        q0, _ = leg_ik(self.robot, aep)
+        q1, _ = leg_ik(self.robot, aep.at[:, 2].add(level))
+        return q1 - q0
+
+    def _height_above_support(self, obs, q_cmd, swing, level):
+        """(6,) m: each foot's height (at its commanded joints) above the ground datum of the stance feet:
+        the mean over stance feet of their height (at their measured joints) less their own foothold level.
+        Along gravity, from leg kinematics and the torso attitude. Blind: no terrain map, no torso height; a
+        foot that lands on top of a step stands out, a torso that sags or tilts as a whole does not."""
         up_world = jnp.array([0.0, 0.0, 1.0])
         up = _quat_to_body(obs.torso_quat, up_world[None, :])[0]  # world up in the torso frame
         z_cmd = leg_to_body(self.robot, leg_fk(self.robot, q_cmd)) @ up
         z_meas = leg_to_body(self.robot, leg_fk(self.robot, obs.qpos.reshape(N_LEGS, 3))) @ up
+        # Each stance foot's own level is taken off: against the plain mean, a foot landing on a step top
+        # next to a stance foot already up there looked only 2/3 of the step height up.
         w = 1.0 - swing
-        z_ref = jnp.sum(w * z_meas) / jnp.maximum(jnp.sum(w), 1e-6)
+        z_ref = jnp.sum(w * (z_meas - level)) / jnp.maximum(jnp.sum(w), 1e-6)
         return z_cmd - z_ref
 
     def _reset_followers(self, z, w):

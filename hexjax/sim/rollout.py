@@ -62,8 +62,11 @@ def _clip_cotangent(tree, bound: float):
 
     def bwd(_, gs):
         gs = [jnp.where(jnp.isfinite(g), g, 0.0) for g in gs]
-        norm = jnp.sqrt(sum(jnp.sum(g * g) for g in gs) + 1e-30)
-        scale = jnp.minimum(1.0, bound / norm)
+        # the norm of cotangents near float32's limit overflows when squared (an inf norm would scale
+        # everything to zero): take it relative to the largest entry
+        big = jnp.maximum(jnp.max(jnp.stack([jnp.max(jnp.abs(g), initial=0.0) for g in gs])), 1e-30)
+        norm = big * jnp.sqrt(sum(jnp.sum(jnp.square(g / big)) for g in gs))
+        scale = jnp.minimum(1.0, bound / jnp.maximum(norm, 1e-30))
         return ([g * scale for g in gs],)
 
     ident.defvjp(fwd, bwd)
