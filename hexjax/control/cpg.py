@@ -446,7 +446,6 @@ class CPGController:
 
         elev_on, elev, offset, hold_q, q_ref = s.elev_on, s.elev, s.offset, s.hold_q, s.q_ref
         level, searched = s.level, s.searched
-        dq_level = self._level_offset(p, level)
         search_n = s.search_n
         n_elev, n_search, n_found, n_fail, depth = s.n_elev, s.n_search, s.n_found, s.n_fail, s.depth
         one = jnp.ones(N_LEGS)
@@ -490,7 +489,6 @@ class CPGController:
             # tilted torso does not build up in it. A searched foothold is held as found instead.
             level = level + to_stance * (raised * (1.0 - s.kept) * above - level)
             searched = s.searched + to_stance * (s.kept - s.searched)
-            dq_level = self._level_offset(p, level)
             hold = hold * (1.0 - atd)
             paused = s.paused * (1.0 - atd)
 
@@ -557,6 +555,7 @@ class CPGController:
         cross_fwd_end = g(y_old, tp) * g(-y_new, tp) * g(x_new, tp)  # leader at its AEP turning point
         cross_back_end = g(-y_old, tp) * g(y_new, tp) * g(-x_new, tp)  # leader at its PEP turning point
 
+        dq_level = self._level_offset(p, level)
         q_lc = self._converter_output(p, lc, z, swing, elev, offset, dq_level, searched)
         q_search = self._search_output(p, lc, z, q_ref, search_n)
 
