@@ -177,7 +177,8 @@ class LinearConverter:
     """Converter coefficients of Eq. 6 for one parameter set: each (6, 3), joints (alpha, beta, gamma).
 
     g_sw, h_sw / g_st, h_st: swing / stance sets for the nominal clearance; dg_sw, dh_sw: the Eq. 11
-    increments to the elevated clearance; z_aep () m: nominal foot-centre height in the leg frame."""
+    increments to the elevated clearance; z_aep () m: nominal foot-centre height in the leg frame;
+    aep, q_aep (6, 3): the nominal AEP foot centres (leg frames, m) and their joints (rad), untrimmed."""
 
     g_sw: jax.Array
     h_sw: jax.Array
@@ -186,6 +187,8 @@ class LinearConverter:
     dg_sw: jax.Array
     dh_sw: jax.Array
     z_aep: jax.Array
+    aep: jax.Array
+    q_aep: jax.Array
 
 
 def converter_points(robot: RobotSpec, step_length, clearance, body_height, stance_radial):
@@ -214,7 +217,8 @@ def linear_converter(robot: RobotSpec, p: CPGParams, stance_radial: float) -> Li
     midpoint (the midpoint is closer to the coxa, so the leg must bend there to keep the foot on a
     straight line)."""
     def sets(clearance):
-        q, _ = leg_ik(robot, converter_points(robot, p.step_length, clearance, p.body_height, stance_radial))
+        pts = converter_points(robot, p.step_length, clearance, p.body_height, stance_radial)
+        q, _ = leg_ik(robot, pts)
         aep, pep, mid, apex = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
         end = 0.5 * (aep + pep)
         g_a, h_a = 0.5 * (aep[:, 0] - pep[:, 0]), 0.5 * (aep[:, 0] + pep[:, 0])
@@ -222,14 +226,14 @@ def linear_converter(robot: RobotSpec, p: CPGParams, stance_radial: float) -> Li
         h_sw = jnp.concatenate([h_a[:, None], 0.5 * (apex[:, 1:] + end[:, 1:])], -1)
         g_st = jnp.concatenate([g_a[:, None], 0.5 * (mid[:, 1:] - end[:, 1:])], -1)
         h_st = jnp.concatenate([h_a[:, None], 0.5 * (mid[:, 1:] + end[:, 1:])], -1)
-        return g_sw, h_sw, g_st, h_st
+        return g_sw, h_sw, g_st, h_st, pts[:, 0], aep
 
-    g_sw, h_sw, g_st, h_st = sets(p.clearance)
-    g_hi, h_hi, _, _ = sets(p.elevated_clearance)
+    g_sw, h_sw, g_st, h_st, aep_pt, aep_q = sets(p.clearance)
+    g_hi, h_hi, _, _, _, _ = sets(p.elevated_clearance)
     t = p.lc_trim
     return LinearConverter(g_sw=g_sw + t[0, 0], h_sw=h_sw + t[0, 1], g_st=g_st + t[1, 0], h_st=h_st + t[1, 1],
                            dg_sw=g_hi - g_sw, dh_sw=h_hi - h_sw,
-                           z_aep=-(p.body_height - robot.foot_radius))
+                           z_aep=-(p.body_height - robot.foot_radius), aep=aep_pt, q_aep=aep_q)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -555,7 +559,7 @@ class CPGController:
         cross_fwd_end = g(y_old, tp) * g(-y_new, tp) * g(x_new, tp)  # leader at its AEP turning point
         cross_back_end = g(-y_old, tp) * g(y_new, tp) * g(-x_new, tp)  # leader at its PEP turning point
 
-        dq_level = self._level_offset(p, level)
+        dq_level = self._level_offset(lc, level)
         q_lc = self._converter_output(p, lc, z, swing, elev, offset, dq_level, searched)
         q_search = self._search_output(p, lc, z, q_ref, search_n)
 
@@ -601,12 +605,10 @@ class CPGController:
                        wait_steps=s.wait_steps + wait, t=s.t + self.dt)
         return new, q.reshape(-1)
 
-    def _level_offset(self, p: CPGParams, level):
+    def _level_offset(self, lc: LinearConverter, level):
         """(6, 3) rad: joints that move each leg's nominal AEP up by `level` (6,) m in the leg frame."""
-        aep = converter_points(self.robot, p.step_length, p.clearance, p.body_height, self.stance_radial)[:, 0]
-        q0, _ = leg_ik(self.robot, aep)
-        q1, _ = leg_ik(self.robot, aep.at[:, 2].add(level))
-        return q1 - q0
+        q1, _ = leg_ik(self.robot, lc.aep.at[:, 2].add(level))
+        return q1 - lc.q_aep
 
     def _height_above_support(self, obs, q_cmd, swing, level):
         """(6,) m: each foot's height (at its commanded joints) above the ground datum of the stance feet:
