@@ -30,6 +30,8 @@ def _cmd_evaluate(a) -> int:
 
 
 def _cmd_experiment(a) -> int:
+    if a.name == "luneckas2020":
+        return _cmd_luneckas(a)
     from hexjax.analysis.experiment import format_experiment, plot_experiment, run_experiment
     res = run_experiment(a.name, batch=a.batch, seed=a.seed, duration=a.duration, record=bool(a.png))
     c = res["config"]
@@ -40,6 +42,54 @@ def _cmd_experiment(a) -> int:
         plot_experiment(res, a.png)
         print(f"wrote {a.png}")
     res.pop("_records", None)
+    if a.json:
+        _write_json(a.json, res)
+    return 0
+
+
+def _cmd_luneckas(a) -> int:
+    from hexjax.analysis.luneckas import format_luneckas, plot_luneckas, run_luneckas2020
+    dists = [float(x) for x in a.distances.split(",")] if a.distances else [1.0, 2.0]
+    gaits = a.gaits.split(",") if a.gaits else ["wave", "tripod"]
+    res = run_luneckas2020(n=a.batch, seed=a.seed, gaits=gaits, distances=dists, keep_sequences=bool(a.dataset))
+    c = res["config"]
+    print(f"\nluneckas2020: robot {c['robot']}, {c['n']} randomised terrains per cell, seed {c['seed']}")
+    print(format_luneckas(res))
+    if a.png:
+        stem = a.png[:-4] if a.png.endswith(".png") else a.png
+        for p in plot_luneckas(res, stem):
+            print(f"wrote {p}")
+    if a.dataset:
+        from hexjax.analysis.predictor import concat_datasets, save_dataset
+        save_dataset(a.dataset, concat_datasets(res.pop("_sequences")), {"source": "experiment luneckas2020",
+                                                                         "n": a.batch, "seed": a.seed})
+        print(f"wrote {a.dataset}")
+    if a.json:
+        _write_json(a.json, res)
+    return 0
+
+
+def _cmd_dataset(a) -> int:
+    from hexjax.analysis.predictor import make_dataset, save_dataset
+    gaits = a.gaits.split(",")
+    data = make_dataset(n=a.n, seed=a.seed, gaits=gaits, distance=a.distance)
+    save_dataset(a.out, data, {"source": "hexjax dataset luneckas2020", "n": a.n, "seed": a.seed, "gaits": gaits,
+                               "distance_m": a.distance})
+    print(f"{len(data['Y'])} sequences of {data['X'].shape[1]} steps ({len(data['Y'])} upright runs); wrote {a.out}")
+    return 0
+
+
+def _cmd_predictor(a) -> int:
+    from hexjax.analysis.predictor import TrainConfig, run_training
+    cfg = TrainConfig(epochs=a.epochs, learning_rate=a.lr, seed=a.seed)
+    res = run_training(a.data.split(","), a.out, cfg, held_out_frac=a.held_out)
+    h = res["held_out"]
+    print(f"\ntrained on {res['train_sequences']} sequences in {res['train_s']:.0f} s; "
+          f"held-out terrains: {res['held_out_sequences']} sequences; saved {res['saved']}")
+    print(f"{'goal-error RMS (cm)':24s} {'all steps':>10s} " + " ".join(f"{k:>8s}" for k in h["by_progress"]))
+    for name in ("lstm", "last_error", "analytic"):
+        print(f"{name:24s} {h['all_steps'][name + '_rms_cm']:10.2f} "
+              + " ".join(f"{v[name + '_rms_cm']:8.2f}" for v in h["by_progress"].values()))
     if a.json:
         _write_json(a.json, res)
     return 0
@@ -98,22 +148,46 @@ def main(argv=None) -> int:
     e.add_argument("--json", default="", help="write the numbers here")
     e.set_defaults(fn=_cmd_evaluate)
 
-    x = sub.add_parser("experiment", help="Yu 2019 reflex experiments: yu2019-step, yu2019-ditch")
-    x.add_argument("name", choices=["yu2019-step", "yu2019-ditch"])
-    x.add_argument("--batch", type=int, default=16, help="randomised terrains per row (default 16)")
+    x = sub.add_parser("experiment", help="paper experiments: luneckas2020 (seed 000 matrix), yu2019-step, yu2019-ditch")
+    x.add_argument("name", choices=["luneckas2020", "yu2019-step", "yu2019-ditch"])
+    x.add_argument("--batch", "--n", dest="batch", type=int, default=16,
+                   help="randomised terrains per row / cell (default 16)")
+    x.add_argument("--gaits", default="", help="luneckas2020: comma list of wave,tripod (default both)")
+    x.add_argument("--distances", default="", help="luneckas2020: comma list of m (default 1,2)")
     x.add_argument("--seed", type=int, default=0)
     x.add_argument("--duration", type=float, default=None, help="s (default: the preset's)")
     x.add_argument("--json", default="", help="write the numbers here")
-    x.add_argument("--png", default="", help="write foot-path and CPG-output plots here")
+    x.add_argument("--dataset", default="", help="luneckas2020: also write the runs as a predictor dataset (.npz)")
+    x.add_argument("--png", default="", help="write plots here (luneckas2020: <stem>_bars.png, <stem>_field.png)")
     x.set_defaults(fn=_cmd_experiment)
+
+    ds = sub.add_parser("dataset", help="simulate walks and write an error-predictor dataset (.npz)")
+    ds.add_argument("name", choices=["luneckas2020"])
+    ds.add_argument("--n", type=int, default=16, help="terrains per category and method (default 16)")
+    ds.add_argument("--seed", type=int, default=1, help="terrain seed (default 1; the experiment uses 0)")
+    ds.add_argument("--gaits", default="wave,tripod")
+    ds.add_argument("--distance", type=float, default=2.0, help="m (default 2)")
+    ds.add_argument("--out", default="data/luneckas2020_seed1.npz")
+    ds.set_defaults(fn=_cmd_dataset)
+
+    pr = sub.add_parser("predictor", help="train the LSTM goal-error predictor (Luneckas 2020 Sect. 2.6)")
+    pr.add_argument("--data", default="data/luneckas2020_seed1.npz", help="comma list of dataset files")
+    pr.add_argument("--out", default="out/error_predictor.msgpack")
+    pr.add_argument("--epochs", type=int, default=50)
+    pr.add_argument("--lr", type=float, default=1e-3)
+    pr.add_argument("--held-out", type=float, default=0.2, help="fraction of terrains held out (default 0.2)")
+    pr.add_argument("--seed", type=int, default=0)
+    pr.add_argument("--json", default="", help="write the numbers here")
+    pr.set_defaults(fn=_cmd_predictor)
 
     b = sub.add_parser("bench", help="env-steps/s of the full rollout at several batch sizes")
     b.add_argument("--robot", default="luneckas2020")
     b.add_argument("--batches", default="16,64,256")
     b.add_argument("--terrains", default="flat,high-large")
     b.add_argument("--seconds", type=float, default=2.0, help="simulated seconds per rollout")
-    b.add_argument("--controller", default="gait", choices=["gait", "cpg", "both"],
-                   help="seed-000 gait, the Yu 2019 CPG, or both (CPG overhead ratio)")
+    b.add_argument("--controller", default="gait",
+                   help="comma list of gait (seed-000 open loop), cpg (Yu 2019), tactile (seed-000 with the tactile "
+                        "switch); 'both' = gait,cpg. Rows other than gait get their cost against gait")
     b.add_argument("--json", default="", help="write the numbers here")
     b.set_defaults(fn=_cmd_bench)
 

@@ -54,20 +54,27 @@ def bench(robot: str = "luneckas2020", batches: Sequence[int] = (16, 64, 256), s
           controller: str = "gait") -> Dict:
     """Times `rollout` at each batch size on each terrain. env-steps = envs x physics steps.
 
-    controller: 'gait' (seed-000 open-loop gait), 'cpg' (Yu 2019 CPG with reflexes and FSM) or 'both'
-    (each row timed with both; `cpg_overhead` = gait rate / CPG rate - 1)."""
+    controller: a comma list of 'gait' (seed-000 open-loop gait), 'cpg' (Yu 2019 CPG with reflexes and FSM),
+    'tactile' (seed-000 gait with the tactile overcoming switch); 'both' means 'gait,cpg'. With 'gait' in the
+    list every other controller's row gets `overhead_vs_gait` = gait rate / its rate - 1."""
     for b in batches:
         if not isinstance(b, int) or b < 1:
             raise ValueError(f"batches entry {b!r}: must be an integer >= 1")
-    if controller not in ("gait", "cpg", "both"):
-        raise ValueError(f"controller={controller!r}: choose 'gait', 'cpg' or 'both'")
+    names = ["gait", "cpg"] if controller == "both" else controller.split(",")
+    bad = [n for n in names if n not in ("gait", "cpg", "tactile")]
+    if bad or not names:
+        raise ValueError(f"controller={controller!r}: a comma list of 'gait', 'cpg', 'tactile' (or 'both')")
     spec = get_robot(robot)
     ctrls = {}
-    if controller in ("gait", "both"):
-        ctrls["gait"] = GaitController(spec, gait=gait)
-    if controller in ("cpg", "both"):
-        from hexjax.control.cpg import CPGController
-        ctrls["cpg"] = CPGController(spec, gait=gait)
+    for n in names:
+        if n == "gait":
+            ctrls["gait"] = GaitController(spec, gait=gait)
+        elif n == "cpg":
+            from hexjax.control.cpg import CPGController
+            ctrls["cpg"] = CPGController(spec, gait=gait)
+        else:
+            from hexjax.control.tactile import TactileGaitController
+            ctrls["tactile"] = TactileGaitController(spec, gait=gait)
     cfg = RolloutConfig()
     n_phys = int(round((sim_seconds + cfg.settle_time) / physics.timestep))
     rows = []
@@ -98,11 +105,11 @@ def bench(robot: str = "luneckas2020", batches: Sequence[int] = (16, 64, 256), s
     for r in rows:
         r["mujoco_c_1thread_steps_per_s"] = round(ref[r["terrain"]], 1)
         r["ratio_vs_mujoco_c_1thread"] = round(r["env_steps_per_s"] / ref[r["terrain"]], 3)
-    if controller == "both":
+    if "gait" in ctrls:
         rate = {(r["terrain"], r["batch"], r["controller"]): r["env_steps_per_s"] for r in rows}
         for r in rows:
-            if r["controller"] == "cpg":
-                r["cpg_overhead"] = round(rate[(r["terrain"], r["batch"], "gait")] / r["env_steps_per_s"] - 1.0, 3)
+            if r["controller"] != "gait":
+                r["overhead_vs_gait"] = round(rate[(r["terrain"], r["batch"], "gait")] / r["env_steps_per_s"] - 1.0, 3)
     dev = jax.devices()[0]
     return dict(robot=robot, gait=gait, controller=controller, sim_seconds=sim_seconds, physics_steps_per_env=n_phys,
                 physics=dataclasses.asdict(physics), backend=jax.default_backend(),
@@ -112,13 +119,13 @@ def bench(robot: str = "luneckas2020", batches: Sequence[int] = (16, 64, 256), s
 
 
 def format_bench(res: Dict) -> str:
-    head = (f"{'terrain':<11} {'ctrl':<5} {'pairs':>5} {'batch':>7} {'compile s':>9} {'env-steps/s':>12} "
-            f"{'MuJoCo C 1thr':>13} {'ratio':>6} {'CPG cost':>8}")
+    head = (f"{'terrain':<11} {'ctrl':<7} {'pairs':>5} {'batch':>7} {'compile s':>9} {'env-steps/s':>12} "
+            f"{'MuJoCo C 1thr':>13} {'ratio':>6} {'vs gait':>8}")
     lines = [f"{res['device']} ({res['backend']}, {res['n_devices']} device(s)), {res['sim_seconds']} s simulated, "
              f"robot {res['robot']}", head]
     for r in res["rows"]:
-        extra = f"{100 * r['cpg_overhead']:+7.1f}%" if "cpg_overhead" in r else ""
-        lines.append(f"{r['terrain']:<11} {r.get('controller', 'gait'):<5} {r['pairs']:5d} {r['batch']:7d} "
+        extra = f"{100 * r['overhead_vs_gait']:+7.1f}%" if "overhead_vs_gait" in r else ""
+        lines.append(f"{r['terrain']:<11} {r.get('controller', 'gait'):<7} {r['pairs']:5d} {r['batch']:7d} "
                      f"{r['compile_s']:9.1f} {r['env_steps_per_s']:12.0f} "
                      f"{r['mujoco_c_1thread_steps_per_s']:13.0f} {r['ratio_vs_mujoco_c_1thread']:6.2f} {extra:>8}")
     return "\n".join(lines)
