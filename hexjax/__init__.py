@@ -14,6 +14,7 @@ if not _os.environ.get("HEXJAX_KEEP_XLA_FLAGS"):
 
 from hexjax.control.cpg import CPG_GAITS, CPGController, CPGParams, CPGState  # noqa: E402
 from hexjax.control.gait import GAITS, GaitController, GaitParams  # noqa: E402
+from hexjax.control.tactile import TactileGaitController, TactileParams, TactileState  # noqa: E402
 from hexjax.control.vdp import NetworkParams  # noqa: E402
 from hexjax.mjcf import PhysicsConfig, build_mjcf  # noqa: E402
 from hexjax.robot import RobotSpec, get_robot, leg_fk, leg_ik, luneckas2020, yu2019  # noqa: E402
@@ -22,7 +23,7 @@ from hexjax.sim.rollout import RolloutConfig, Summary, make_mesh, rollout, rollo
 from hexjax.terrain import Terrain, TerrainSpec, get_terrain, obstacle_circles, sample  # noqa: E402
 
 __all__ = ["CPG_GAITS", "CPGController", "CPGParams", "CPGState", "NetworkParams", "GAITS", "GaitController",
-           "GaitParams", "PhysicsConfig", "build_mjcf", "RobotSpec", "get_robot",
+           "GaitParams", "TactileGaitController", "TactileParams", "TactileState", "PhysicsConfig", "build_mjcf", "RobotSpec", "get_robot",
            "leg_fk", "leg_ik", "luneckas2020", "yu2019", "Obs", "SensorConfig", "SimModel", "sim_model",
            "RolloutConfig", "Summary", "make_mesh", "rollout", "rollout_function", "Terrain", "TerrainSpec", "get_terrain",
            "obstacle_circles", "sample"]

@@ -33,3 +33,17 @@ def test_cli_reports_bad_input(capsys):
     assert main(["terrain", "--preset", "volcano", "--png", "x.png"]) == 2
     assert "volcano" in capsys.readouterr().err
     assert main(["evaluate", "--batch", "0"]) == 2
+
+
+def test_luneckas_commands_report_bad_input(capsys, tmp_path):
+    """Errors before any simulation: bad n, gait, distance, missing dataset."""
+    assert main(["experiment", "luneckas2020", "--n", "0"]) == 2
+    assert "n=0" in capsys.readouterr().err
+    assert main(["experiment", "luneckas2020", "--gaits", "trot"]) == 2
+    assert "trot" in capsys.readouterr().err
+    assert main(["experiment", "luneckas2020", "--distances", "-1"]) == 2
+    assert "distances" in capsys.readouterr().err
+    assert main(["predictor", "--data", str(tmp_path / "none.npz")]) == 2
+    assert "hexjax dataset" in capsys.readouterr().err
+    assert main(["predictor", "--lr", "0", "--data", str(tmp_path / "none.npz")]) == 2
+    assert "learning_rate" in capsys.readouterr().err

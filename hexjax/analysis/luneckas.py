@@ -221,6 +221,7 @@ def _model_vs_sim(res, gait, dkey, d, terrain, groups, dx, dy, da, bad, width, d
         for c, sl in sel:
             pred = em.predict_from_obstacles(dL, width, pos[sl], half[sl], valid[sl], d)
             ok = ~bad[sl]
+            nz = pred["dalpha"] != 0
             sim_dx = dx[sl][ok]
             mdx = pred["dx"][ok] + calib
             corr = float(np.corrcoef(sim_dx, mdx)[0, 1]) if ok.sum() > 2 and np.std(mdx) > 0 and np.std(sim_dx) > 0 else None
@@ -232,8 +233,11 @@ def _model_vs_sim(res, gait, dkey, d, terrain, groups, dx, dy, da, bad, width, d
                        "model_abs_dalpha_deg": float(np.degrees(np.abs(pred["dalpha"][ok])).mean()) if ok.any() else None,
                        "sim_abs_dalpha_deg": float(np.degrees(np.abs(da[sl][ok])).mean()) if ok.any() else None,
                        "dx_corr_per_env": corr,
+                       # share of runs turning to the side the model says (a predicted 0 counts as a miss)
                        "dalpha_sign_agreement": float(np.mean(np.sign(pred["dalpha"][ok]) == np.sign(da[sl][ok])))
-                       if ok.any() else None}
+                       if ok.any() else None,
+                       "dalpha_sign_agreement_nonzero": float(np.mean(
+                           np.sign(pred["dalpha"][ok & nz]) == np.sign(da[sl][ok & nz]))) if (ok & nz).any() else None}
         out[meth] = {"dL": dL, "dL_cm": 100 * dL, "alpha_k_deg": math.degrees(em.alpha_k(dL, width)), "cells": rows}
     return out
 

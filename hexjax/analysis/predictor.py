@@ -114,6 +114,9 @@ def save_dataset(path: str, data: Dict[str, np.ndarray], meta: Dict) -> None:
 
 
 def load_dataset(path: str) -> Dict[str, np.ndarray]:
+    import os
+    if not os.path.isfile(path):
+        raise ValueError(f"dataset {path!r} not found: make one with `hexjax dataset luneckas2020 --out {path}`")
     with np.load(path, allow_pickle=False) as f:
         data = {k: f[k] for k in f.files if k != "meta"}
     if "X" not in data or "Y" not in data or data["X"].ndim != 3:
@@ -309,6 +312,9 @@ def evaluate_predictor(params, norm, cfg: TrainConfig, data, mask, fits) -> Dict
 def run_training(paths: Sequence[str], out: str, cfg: TrainConfig = TrainConfig(), held_out_frac: float = 0.2,
                  progress: bool = True) -> Dict:
     """Load datasets, hold out a fraction of terrains, train, save to `out`, reload and evaluate."""
+    cfg.validate()
+    if not 0 < held_out_frac < 1:
+        raise ValueError(f"held_out_frac={held_out_frac!r}: must be in (0, 1)")
     parts = []
     for i, p in enumerate(paths):
         d = load_dataset(p)
