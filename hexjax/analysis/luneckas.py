@@ -134,7 +134,8 @@ def _cell(dx, dy, da, fell, stuck, nan, d):
 
 def run_luneckas2020(n: int = 16, seed: int = 0, gaits: Sequence[str] = GAITS,
                      distances: Sequence[float] = DISTANCES, progress: bool = True, keep_sequences: bool = False) -> Dict:
-    """Runs the whole matrix; returns a JSON-ready dict (see module doc) and, with keep_sequences, `_sequences`: the runs as an error-predictor dataset (`predictor`)."""
+    """Runs the whole matrix; returns a JSON-ready dict (see module doc) and, with keep_sequences,
+    `_sequences`: the runs as an error-predictor dataset (`predictor`)."""
     if not isinstance(n, int) or n < 1:
         raise ValueError(f"n={n!r}: must be an integer >= 1")
     for g in gaits:
@@ -168,7 +169,6 @@ def run_luneckas2020(n: int = 16, seed: int = 0, gaits: Sequence[str] = GAITS,
         for d in distances:
             if d == d_max:
                 pose, t_read = np.asarray(s.end_pose), math.inf
-                k = n_steps - 1
             else:
                 k = _readout_index(ctrl, params, d, n_steps)
                 pose, t_read = trace[:, k][:, [0, 1, 3]], (k + 1) * ctrl.dt
