@@ -75,7 +75,7 @@ def _cmd_dataset(a) -> int:
     data = make_dataset(n=a.n, seed=a.seed, gaits=gaits, distance=a.distance)
     save_dataset(a.out, data, {"source": "hexjax dataset luneckas2020", "n": a.n, "seed": a.seed, "gaits": gaits,
                                "distance_m": a.distance})
-    print(f"{len(data['Y'])} sequences of {data['X'].shape[1]} steps ({len(data['Y'])} upright runs); wrote {a.out}")
+    print(f"{len(data['Y'])} sequences (the runs that stayed upright) of {data['X'].shape[1]} steps; wrote {a.out}")
     return 0
 
 
@@ -155,7 +155,8 @@ def main(argv=None) -> int:
     x.add_argument("--gaits", default="", help="luneckas2020: comma list of wave,tripod (default both)")
     x.add_argument("--distances", default="", help="luneckas2020: comma list of m (default 1,2)")
     x.add_argument("--seed", type=int, default=0)
-    x.add_argument("--duration", type=float, default=None, help="s (default: the preset's)")
+    x.add_argument("--duration", type=float, default=None,
+                   help="yu2019 presets: s (default: the preset's); luneckas2020 walks its distances")
     x.add_argument("--json", default="", help="write the numbers here")
     x.add_argument("--dataset", default="", help="luneckas2020: also write the runs as a predictor dataset (.npz)")
     x.add_argument("--png", default="", help="write plots here (luneckas2020: <stem>_bars.png, <stem>_field.png)")
