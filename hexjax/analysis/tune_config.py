@@ -1,0 +1,91 @@
+"""Tuning configs (configs/tune/*.yaml): every key, its default and its check, raised before anything is
+traced (issue 5). The optimiser loop itself reads a validated `TuneConfig`."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Dict, Optional
+
+import yaml
+
+from hexjax.analysis.space import ParamSpace, make_space
+from hexjax.terrain import PRESETS as TERRAINS
+
+OBJECTIVE_TERMS = ("dx", "dy", "dalpha", "fall", "energy")
+OPTIMIZERS = ("adam", "sgd")
+
+
+@dataclasses.dataclass(frozen=True)
+class TuneConfig:
+    controller: str = "tactile"
+    gait: str = "tripod"
+    terrain: str = "high-small"
+    max_obstacle_height: float = 0.05
+    train_batch: int = 8
+    held_out_batch: int = 16
+    distance: float = 1.0
+    horizon: float = 2.0
+    temperature: float = 0.05
+    params: Dict[str, Dict[str, float]] = dataclasses.field(default_factory=dict)
+    optimizer: Dict[str, object] = dataclasses.field(default_factory=lambda: {"name": "adam", "learning_rate": 0.05})
+    objective: Dict[str, float] = dataclasses.field(default_factory=lambda: {"dx": 1.0, "dy": 1.0})
+    steps: int = 30
+    eval_every: int = 10
+    seed: int = 0
+
+    def validate(self) -> None:
+        if self.terrain not in TERRAINS:
+            raise ValueError(f"tune.terrain={self.terrain!r}: choose one of {sorted(TERRAINS)}")
+        for f in ("train_batch", "held_out_batch", "steps", "eval_every"):
+            v = getattr(self, f)
+            if not (isinstance(v, int) and not isinstance(v, bool) and v >= 1):
+                raise ValueError(f"tune.{f}={v!r}: must be an integer >= 1")
+        for f in ("distance", "horizon", "temperature"):
+            v = getattr(self, f)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise ValueError(f"tune.{f}={v!r}: must be a finite number > 0")
+        if not (0 <= self.max_obstacle_height <= 0.2):
+            raise ValueError(f"tune.max_obstacle_height={self.max_obstacle_height!r}: must be in [0, 0.2] m")
+        opt = dict(self.optimizer)
+        unknown = set(opt) - {"name", "learning_rate", "clip_norm"}
+        if unknown:
+            raise ValueError(f"tune.optimizer: unknown keys {sorted(unknown)}")
+        if opt.get("name", "adam") not in OPTIMIZERS:
+            raise ValueError(f"tune.optimizer.name={opt.get('name')!r}: choose one of {OPTIMIZERS}")
+        lr = opt.get("learning_rate", 0.05)
+        if not (isinstance(lr, (int, float)) and math.isfinite(lr) and lr > 0):
+            raise ValueError(f"tune.optimizer.learning_rate={lr!r}: must be a finite number > 0")
+        clip = opt.get("clip_norm")
+        if clip is not None and not (isinstance(clip, (int, float)) and math.isfinite(clip) and clip > 0):
+            raise ValueError(f"tune.optimizer.clip_norm={clip!r}: must be None or a finite number > 0")
+        for k, w in self.objective.items():
+            if k not in OBJECTIVE_TERMS:
+                raise ValueError(f"tune.objective.{k}: unknown term; use {OBJECTIVE_TERMS}")
+            if not (isinstance(w, (int, float)) and math.isfinite(w) and w >= 0):
+                raise ValueError(f"tune.objective.{k}={w!r}: weight must be a finite number >= 0")
+        if not any(self.objective.values()):
+            raise ValueError("tune.objective: every weight is 0, nothing to minimise")
+        self.space()  # unknown controller, unknown parameter, min > max
+
+    def space(self) -> ParamSpace:
+        return make_space(self.controller, overrides=self.params, only=list(self.params) or None)
+
+
+def load_tune_config(path: str, overrides: Optional[Dict] = None) -> TuneConfig:
+    """Read a YAML tuning config, apply `overrides` (top-level keys), check it, and return it."""
+    try:
+        with open(path) as f:
+            raw = yaml.safe_load(f) or {}
+    except FileNotFoundError:
+        raise ValueError(f"tune config {path!r} not found") from None
+    if not isinstance(raw, dict):
+        raise ValueError(f"{path}: expected a mapping of keys at the top level")
+    raw.update(overrides or {})
+    known = {f.name for f in dataclasses.fields(TuneConfig)}
+    unknown = sorted(set(raw) - known)
+    if unknown:
+        raise ValueError(f"{path}: unknown keys {unknown}; known: {sorted(known)}")
+    cfg = TuneConfig(**raw)
+    cfg.validate()
+    return cfg
