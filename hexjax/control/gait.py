@@ -91,8 +91,42 @@ class GaitState:
     t: jax.Array  # time since the gait clock started, s (negative during the ramp-in)
 
 
+class PatternClock:
+    """What the seed-000 gait controllers share: a gait pattern (Fig. 13), the check of the gait name and
+    control period, and the cycle bookkeeping for a walk of a given distance. Mixed into frozen dataclasses
+    that define `gait` and `dt`; `default_params()` must return params with `step_length` and `swing_time`
+    (scalars, or batched: their mean sets the walk's length)."""
+
+    def _check_gait_and_dt(self) -> None:
+        if self.gait not in GAITS:
+            raise ValueError(f"gait={self.gait!r}: choose one of {sorted(GAITS)}")
+        if not (0 < self.dt <= 0.1):
+            raise ValueError(f"controller.dt={self.dt!r}: must be in (0, 0.1] s")
+
+    @property
+    def pattern(self) -> GaitPattern:
+        return GAITS[self.gait]
+
+    @property
+    def cycle_time(self) -> float:
+        return self.pattern.swing_time * self.pattern.period
+
+    def cycles_for(self, distance: float, params=None) -> int:
+        """Gait cycles (ramps included) whose commanded advance is closest to `distance` m."""
+        p = params or self.default_params()
+        period = self.pattern.period
+        advance = float(np.mean(p.step_length)) * period / (period - 1)
+        return max(2, int(round(distance / advance)) + 1)
+
+    def duration_for(self, distance: float, params=None, rest: float = 0.5):
+        """(gait cycles, rollout seconds) to walk `distance` m and then stand `rest` s."""
+        p = params or self.default_params()
+        n = self.cycles_for(distance, p)
+        return n, n * float(np.mean(p.swing_time)) * self.pattern.period + rest
+
+
 @dataclasses.dataclass(frozen=True)
-class GaitController:
+class GaitController(PatternClock):
     """Open-loop seed-000 gait: feet follow `leg_trajectory`, joints track them through IK.
 
     Start and stop: the printed trajectory puts half the legs at -l/2 and half at +l/2 at t = 0, a jump
@@ -108,18 +142,7 @@ class GaitController:
     n_cycles: int | None = None  # stop after this many gait cycles (None: walk on)
 
     def __post_init__(self):
-        if self.gait not in GAITS:
-            raise ValueError(f"gait={self.gait!r}: choose one of {sorted(GAITS)}")
-        if not (0 < self.dt <= 0.1):
-            raise ValueError(f"controller.dt={self.dt!r}: must be in (0, 0.1] s")
-
-    @property
-    def pattern(self) -> GaitPattern:
-        return GAITS[self.gait]
-
-    @property
-    def cycle_time(self) -> float:
-        return self.pattern.swing_time * self.pattern.period
+        self._check_gait_and_dt()
 
     def default_params(self) -> GaitParams:
         p = self.pattern
@@ -134,19 +157,6 @@ class GaitController:
             v = np.asarray(getattr(params, f))
             if not np.all(np.isfinite(v)) or np.any(v <= lo) or np.any(v > hi):
                 raise ValueError(f"gait.{f}={v.tolist()!r}: must be in ({lo}, {hi}]")
-
-    def cycles_for(self, distance: float, params: GaitParams | None = None) -> int:
-        """Gait cycles (ramps included) whose commanded advance is closest to `distance` m."""
-        p = params or self.default_params()
-        period = self.pattern.period
-        advance = float(p.step_length) * period / (period - 1)
-        return max(2, int(round(distance / advance)) + 1)
-
-    def duration_for(self, distance: float, params: GaitParams | None = None, rest: float = 0.5):
-        """(gait cycles, rollout seconds) to walk `distance` m and then stand `rest` s."""
-        p = params or self.default_params()
-        n = self.cycles_for(distance, p)
-        return n, n * float(p.swing_time) * self.pattern.period + rest
 
     def init(self, params: GaitParams, key) -> GaitState:
         del params, key

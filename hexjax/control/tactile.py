@@ -36,7 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from hexjax.control.gait import GAITS, GaitPattern
+from hexjax.control.gait import PatternClock
 from hexjax.robot import N_LEGS, RobotSpec, body_to_leg, leg_ik, neutral_feet_body
 
 
@@ -71,7 +71,7 @@ class TactileState:
 
 
 @dataclasses.dataclass(frozen=True)
-class TactileGaitController:
+class TactileGaitController(PatternClock):
     """The seed-000 gait (tripod or wave) with the tactile obstacle-overcoming switch.
 
     robot: RobotSpec; gait: 'tripod' or 'wave'; max_obstacle_height: H of Eq. 7 (m), the one thing the
@@ -88,22 +88,11 @@ class TactileGaitController:
     n_cycles: int | None = None
 
     def __post_init__(self):
-        if self.gait not in GAITS:
-            raise ValueError(f"gait={self.gait!r}: choose one of {sorted(GAITS)}")
-        if not (0 < self.dt <= 0.1):
-            raise ValueError(f"controller.dt={self.dt!r}: must be in (0, 0.1] s")
+        self._check_gait_and_dt()
         if not (math.isfinite(self.max_obstacle_height) and 0 <= self.max_obstacle_height <= 0.2):
             raise ValueError(f"max_obstacle_height={self.max_obstacle_height!r}: must be in [0, 0.2] m")
         if not (math.isfinite(self.step_height) and 0 < self.step_height <= 0.15):
             raise ValueError(f"step_height={self.step_height!r}: must be in (0, 0.15] m")
-
-    @property
-    def pattern(self) -> GaitPattern:
-        return GAITS[self.gait]
-
-    @property
-    def cycle_time(self) -> float:
-        return self.pattern.swing_time * self.pattern.period
 
     def default_params(self, enable: bool = True, max_obstacle_height: float | None = None) -> TactileParams:
         """The paper's hand rules: l_i from the gait's steps per metre, l_k = 2 l_i, h_k = H + 2 cm."""
@@ -126,19 +115,6 @@ class TactileGaitController:
         e = np.asarray(params.enable)
         if not np.all((e >= 0) & (e <= 1)):
             raise ValueError(f"tactile.enable={e.tolist()!r}: must be in [0, 1]")
-
-    def cycles_for(self, distance: float, params: TactileParams | None = None) -> int:
-        """Gait cycles (ramps included) whose commanded advance is closest to `distance` m."""
-        p = params or self.default_params()
-        period = self.pattern.period
-        advance = float(np.mean(p.step_length)) * period / (period - 1)
-        return max(2, int(round(distance / advance)) + 1)
-
-    def duration_for(self, distance: float, params: TactileParams | None = None, rest: float = 0.5):
-        """(gait cycles, rollout seconds) to walk `distance` m and then stand `rest` s."""
-        p = params or self.default_params()
-        n = self.cycles_for(distance, p)
-        return n, n * float(np.mean(p.swing_time)) * self.pattern.period + rest
 
     def commanded_advance(self, params: TactileParams, t):
         """Body advance the gait commands by gait time t (s): the stroke ramps in over the first cycle
