@@ -78,22 +78,29 @@ def path_obstacles(box_pos, box_half, box_valid, distance: float, lane=(0.07, 0.
     return valid & in_lane & in_x, side
 
 
-def predict_from_obstacles(dL, a, box_pos, box_half, box_valid, distance: float, n_legs: int = 6, **lane_kw):
-    """The model's (dx, dy, dalpha) for each terrain of a batch, from the obstacles in the path and a
-    per-interaction loss dL (m). R is the distance left after the last obstacle (Eq. 10 with S l_i the
-    position of that obstacle). Returns a dict of (B,) arrays (m, m, rad) and the obstacle counts."""
+def obstacle_counts(box_pos, box_half, box_valid, distance: float, **lane_kw):
+    """What the model needs of a terrain's obstacles (`path_obstacles`): their number N in the path, their
+    signed count (left minus right), and the x (m) of the last one (0 when there is none). (...,) each."""
     in_path, side = path_obstacles(box_pos, box_half, box_valid, distance, **lane_kw)
-    n_obs = in_path.sum(-1)
-    dx = dx_sum(dL, n_obs, n_legs)
-    ak = alpha_k(dL, a)
-    signs = np.where(in_path, side, 0.0)
-    da = dalpha_sum(np.broadcast_to(ak * (n_legs // 2), signs.shape), signs, axis=-1)
     x_last = np.where(in_path, np.asarray(box_pos)[..., 0], -np.inf).max(-1)
-    covered = np.clip(np.where(np.isfinite(x_last), x_last, 0.0), 0.0, distance)
-    R = distance - covered
-    da_c = np.clip(da, -math.radians(89.0), math.radians(89.0))
-    dy = dy_from(R, dx, da_c)
-    return {"dx": dx, "dy": dy, "dalpha": da, "n_obstacles": n_obs, "R": R}
+    return in_path.sum(-1), np.where(in_path, side, 0.0).sum(-1), np.where(np.isfinite(x_last), x_last, 0.0)
+
+
+def predict_from_counts(dL, a, n_obstacles, signed_obstacles, x_last, distance, n_legs: int = 6):
+    """The model's (dx, dy, dalpha) from obstacle counts (`obstacle_counts`) and a per-interaction loss dL
+    (m): Eq. 8 for dx, Eqs. 11-14 with each obstacle signed by its side for dalpha, and Eqs. 9-10 with R the
+    distance left after the last obstacle (S l_i its position). Returns a dict of arrays (m, m, rad)."""
+    dx = dx_sum(dL, n_obstacles, n_legs)
+    da = np.asarray(signed_obstacles, dtype=float) * (n_legs // 2) * alpha_k(dL, a)
+    R = np.asarray(distance, dtype=float) - np.clip(x_last, 0.0, distance)
+    dy = dy_from(R, dx, np.clip(da, -math.radians(89.0), math.radians(89.0)))
+    return {"dx": dx, "dy": dy, "dalpha": da, "n_obstacles": np.asarray(n_obstacles), "R": R}
+
+
+def predict_from_obstacles(dL, a, box_pos, box_half, box_valid, distance: float, n_legs: int = 6, **lane_kw):
+    """`predict_from_counts` for each terrain of a batch, from its boxes. (B,) arrays."""
+    return predict_from_counts(dL, a, *obstacle_counts(box_pos, box_half, box_valid, distance, **lane_kw),
+                               distance, n_legs)
 
 
 def fit_dL(dx_excess, n_obstacles, n_legs: int = 6) -> float:

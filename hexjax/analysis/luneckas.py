@@ -31,6 +31,7 @@ from tqdm.auto import tqdm
 
 from hexjax.analysis import error_model as em
 from hexjax.analysis.evaluate import pad_terrain
+from hexjax.analysis.metrics import pose_errors
 from hexjax.control.tactile import TactileGaitController
 from hexjax.robot import get_robot
 from hexjax.sim.rollout import RolloutConfig, progress_to, rollout
@@ -56,15 +57,13 @@ def _readout_index(ctrl: TactileGaitController, params, d: float, n_steps: int) 
 
 
 def errors_from(start_pose, pose, d: float):
-    """(dx, dy, dalpha) in the start frame of each env: dx = d - advance along the start heading (> 0 short),
-    dy lateral (> 0 left), dalpha heading change wrapped to (-pi, pi]. numpy, (B,) each."""
-    p0, p1 = np.asarray(start_pose), np.asarray(pose)
-    c, s = np.cos(p0[:, 2]), np.sin(p0[:, 2])
-    disp = p1[:, :2] - p0[:, :2]
-    adv = c * disp[:, 0] + s * disp[:, 1]
-    lat = -s * disp[:, 0] + c * disp[:, 1]
-    da = np.angle(np.exp(1j * (p1[:, 2] - p0[:, 2])))
-    return d - adv, lat, da, adv
+    """`metrics.pose_errors` in numpy: (dx, dy, dalpha, advance), (B,) each."""
+    return pose_errors(np.asarray(start_pose), np.asarray(pose), d, xp=np)
+
+
+def robot_width(robot) -> float:
+    """a of Luneckas 2020 Eq. 12: the robot's width between its left and right front/hind feet, m."""
+    return 2 * (robot.hip_y + robot.stance_radial * math.cos(robot.stance_splay))
 
 
 def simulate_gait(gait: str, n: int, seed: int = 0, distance: float = 2.0,
@@ -146,7 +145,7 @@ def run_luneckas2020(n: int = 16, seed: int = 0, gaits: Sequence[str] = GAITS,
         raise ValueError(f"distances={distances!r}: each must be in (0, 10] m")
     robot = get_robot("luneckas2020")
     d_max = distances[-1]
-    width = 2 * (robot.hip_y + robot.stance_radial * math.cos(robot.stance_splay))  # a of Eq. 12, feet to feet
+    width = robot_width(robot)
     res = {"config": {"experiment": "luneckas2020", "robot": robot.name, "n": n, "seed": seed,
                       "gaits": list(gaits), "distances_m": distances, "categories": list(SEED000_CATEGORIES),
                       "robot_width_a_m": width, "stuck": f"advanced < {STUCK_RATIO:.0%} of the commanded advance "
@@ -154,6 +153,7 @@ def run_luneckas2020(n: int = 16, seed: int = 0, gaits: Sequence[str] = GAITS,
                       "paper_relative_error_pct": {"without": 24.0, "with": 12.0}},
            "calibration": {}, "cells": {}, "model": {}, "timing": {}}
     for gait in gaits:
+        fits = {}  # dL per method, fitted at the shortest distance (`_model_vs_sim`)
         t0 = time.perf_counter()
         ctrl, params, terrain, s, groups = simulate_gait(gait, n, seed, d_max, progress=progress)
         wall = time.perf_counter() - t0
@@ -191,7 +191,7 @@ def run_luneckas2020(n: int = 16, seed: int = 0, gaits: Sequence[str] = GAITS,
                 else:
                     res["cells"].setdefault(gait, {}).setdefault(cat, {}).setdefault(dkey, {})[meth] = cell
             res["model"].setdefault(gait, {})[dkey] = _model_vs_sim(res, gait, dkey, d, terrain, groups, dx, dy, da,
-                                                                     fell | nan, width, distances)
+                                                                     fell | nan, width, fits)
         if keep_sequences:
             from hexjax.analysis.predictor import sequences_from_runs
             res.setdefault("_sequences", []).append(
@@ -200,9 +200,10 @@ def run_luneckas2020(n: int = 16, seed: int = 0, gaits: Sequence[str] = GAITS,
     return res
 
 
-def _model_vs_sim(res, gait, dkey, d, terrain, groups, dx, dy, da, bad, width, distances):
-    """Eqs. 8-14 beside the simulation. dL is fitted per method on the 1 m (shortest) readout of this gait,
-    with the calibration's mean dx removed, and then predicts every cell; the 2 m cells test the fit."""
+def _model_vs_sim(res, gait, dkey, d, terrain, groups, dx, dy, da, bad, width, fits):
+    """Eqs. 8-14 beside the simulation. dL is fitted per method on the first readout of this gait (the
+    shortest distance: `fits` is empty then and is filled here), with the calibration's mean dx removed,
+    and then predicts every cell; the longer distances test the fit."""
     calib = res["calibration"][gait][dkey]["dx_cm"] / 100
     out = {}
     pos, half, valid = (np.asarray(a) for a in (terrain.box_pos, terrain.box_half, terrain.box_valid))
@@ -210,16 +211,15 @@ def _model_vs_sim(res, gait, dkey, d, terrain, groups, dx, dy, da, bad, width, d
         sel = [(c, sl) for c, m_, sl in groups if m_ == meth and c != "flat"]
         if not sel:
             continue
-        if "dL" not in res["model"].get(gait, {}).get(f"{distances[0]:g}m", {}).get(meth, {}):
-            # fit on this (shortest) distance
-            n_all = np.concatenate([em.path_obstacles(pos[sl], half[sl], valid[sl], d)[0].sum(-1) for _, sl in sel])
+        counts = {c: em.obstacle_counts(pos[sl], half[sl], valid[sl], d) for c, sl in sel}
+        if meth not in fits:
+            n_all = np.concatenate([counts[c][0] for c, _ in sel])
             ex_all = np.concatenate([np.where(bad[sl], np.nan, dx[sl] - calib) for _, sl in sel])
-            dL = max(em.fit_dL(ex_all, n_all), 0.0)
-        else:
-            dL = res["model"][gait][f"{distances[0]:g}m"][meth]["dL"]
+            fits[meth] = max(em.fit_dL(ex_all, n_all), 0.0)
+        dL = fits[meth]
         rows = {}
         for c, sl in sel:
-            pred = em.predict_from_obstacles(dL, width, pos[sl], half[sl], valid[sl], d)
+            pred = em.predict_from_counts(dL, width, *counts[c], d)
             ok = ~bad[sl]
             nz = pred["dalpha"] != 0
             sim_dx = dx[sl][ok]

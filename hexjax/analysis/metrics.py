@@ -30,16 +30,23 @@ class GoalErrors:
     success: jnp.ndarray
 
 
-def goal_errors(summary: Summary, distance: float, success_radius: float = 0.1) -> GoalErrors:
-    """dx, dy, d-alpha at the goal (Luneckas 2020 Sect. 2.5, Fig. 15), in the robot's start frame."""
-    p0, p1 = summary.start_pose, summary.end_pose
+def pose_errors(start_pose, pose, distance: float, xp=jnp):
+    """(dx, dy, dalpha, advance) of poses (..., 3) (x m, y m, yaw rad) against a straight walk of `distance`
+    m along the start heading, in the start frame (Luneckas 2020 Sect. 2.5, Fig. 15): dx = distance -
+    advance (> 0: short), dy lateral (> 0: left), dalpha wrapped to (-pi, pi]. xp: jax.numpy or numpy."""
+    p0, p1 = start_pose, pose
     yaw0 = p0[..., 2]
     disp = p1[..., :2] - p0[..., :2]
-    c, s = jnp.cos(yaw0), jnp.sin(yaw0)
+    c, s = xp.cos(yaw0), xp.sin(yaw0)
     advance = c * disp[..., 0] + s * disp[..., 1]
     lateral = -s * disp[..., 0] + c * disp[..., 1]
-    dx = distance - advance
-    dalpha = jnp.angle(jnp.exp(1j * (p1[..., 2] - yaw0)))
+    dalpha = xp.angle(xp.exp(1j * (p1[..., 2] - yaw0)))
+    return distance - advance, lateral, dalpha, advance
+
+
+def goal_errors(summary: Summary, distance: float, success_radius: float = 0.1) -> GoalErrors:
+    """dx, dy, d-alpha at the goal (Luneckas 2020 Sect. 2.5, Fig. 15), in the robot's start frame."""
+    dx, lateral, dalpha, advance = pose_errors(summary.start_pose, summary.end_pose, distance)
     ok = ~summary.fell & ~summary.nan & (jnp.hypot(dx, lateral) <= success_radius)
     return GoalErrors(dx=dx, dy=lateral, dalpha=dalpha, advance=advance, success=ok)
 

@@ -68,9 +68,7 @@ def sequences_from_runs(ctrl, params, terrain, summary, groups, gait: str, dista
     X = np.concatenate([X, np.broadcast_to(flags[:, None], (B, K, 2))], -1).astype(np.float32)
     dx, dy, _, _ = errors_from(p0, np.asarray(summary.end_pose), distance)
     Y = np.stack([dx, dy], -1).astype(np.float32)
-    in_path, side = em.path_obstacles(terrain.box_pos, terrain.box_half, terrain.box_valid, distance)
-    pos = np.asarray(terrain.box_pos)
-    x_last = np.where(in_path, pos[..., 0], -np.inf).max(-1)
+    n_obs, signed, x_last = em.obstacle_counts(terrain.box_pos, terrain.box_half, terrain.box_valid, distance)
     category = np.empty(B, dtype=object)
     terrain_id = np.zeros(B, dtype=np.int64)
     for cat, _, sl in groups:
@@ -78,8 +76,7 @@ def sequences_from_runs(ctrl, params, terrain, summary, groups, gait: str, dista
         terrain_id[sl] = np.arange(sl.stop - sl.start)
     return {"X": X[ok], "Y": Y[ok], "category": category[ok].astype(str), "method": enable[ok],
             "gait": np.full(int(ok.sum()), gait), "terrain_id": terrain_id[ok],
-            "n_obstacles": in_path.sum(-1)[ok], "signed_obstacles": np.where(in_path, side, 0).sum(-1)[ok],
-            "x_last": np.where(np.isfinite(x_last), x_last, 0.0)[ok], "distance": np.full(int(ok.sum()), distance),
+            "n_obstacles": n_obs[ok], "signed_obstacles": signed[ok], "x_last": x_last[ok], "distance": np.full(int(ok.sum()), distance),
             "width": np.full(int(ok.sum()), width)}
 
 
@@ -87,11 +84,10 @@ def make_dataset(n: int = 16, seed: int = 1, gaits: Sequence[str] = ("wave", "tr
                  progress: bool = True) -> Dict[str, np.ndarray]:
     """Simulate the luneckas2020 matrix (every category x with/without, plus flat) for each gait on `n`
     terrains per cell and return the concatenated sequences (see `sequences_from_runs`)."""
-    from hexjax.analysis.luneckas import simulate_gait
+    from hexjax.analysis.luneckas import robot_width, simulate_gait
     from hexjax.robot import get_robot
 
-    robot = get_robot("luneckas2020")
-    width = 2 * (robot.hip_y + robot.stance_radial * math.cos(robot.stance_splay))
+    width = robot_width(get_robot("luneckas2020"))
     parts = []
     for g in gaits:
         ctrl, params, terrain, s, groups = simulate_gait(g, n, seed, distance, progress=progress)
@@ -278,12 +274,11 @@ def analytic_prediction(data, fits):
     out = np.zeros((len(data["Y"]), 2))
     for i in range(len(out)):
         dL, calib = fits.get((str(data["gait"][i]), float(data["method"][i])), (0.0, 0.0))
-        n = data["n_obstacles"][i] if data["category"][i] != "flat" else 0
-        dx = em.dx_sum(dL, n) + calib
-        da = float(np.clip(data["signed_obstacles"][i] * 3 * em.alpha_k(dL, data["width"][i]),
-                           -math.radians(89), math.radians(89)))
-        R = data["distance"][i] - min(max(data["x_last"][i], 0.0), data["distance"][i])
-        out[i] = (dx, em.dy_from(R, dx - calib, da))
+        flat = data["category"][i] == "flat"
+        pred = em.predict_from_counts(dL, data["width"][i], 0 if flat else data["n_obstacles"][i],
+                                      0 if flat else data["signed_obstacles"][i], data["x_last"][i],
+                                      data["distance"][i])
+        out[i] = (pred["dx"] + calib, pred["dy"])
     return out
 
 

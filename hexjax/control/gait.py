@@ -91,6 +91,15 @@ class GaitState:
     t: jax.Array  # time since the gait clock started, s (negative during the ramp-in)
 
 
+def check_open_ranges(prefix: str, params, checks) -> None:
+    """Host-side check that each named field of `params` (scalar or batched) is finite and in (lo, hi];
+    `checks`: {field: (lo, hi)}. Raises ValueError naming `prefix.field` and its value."""
+    for f, (lo, hi) in checks.items():
+        v = np.asarray(getattr(params, f))
+        if not np.all(np.isfinite(v)) or np.any(v <= lo) or np.any(v > hi):
+            raise ValueError(f"{prefix}.{f}={v.tolist()!r}: must be in ({lo}, {hi}]")
+
+
 class PatternClock:
     """What the seed-000 gait controllers share: a gait pattern (Fig. 13), the check of the gait name and
     control period, and the cycle bookkeeping for a walk of a given distance. Mixed into frozen dataclasses
@@ -152,11 +161,8 @@ class GaitController(PatternClock):
 
     def validate_params(self, params: GaitParams) -> None:
         """Host-side checks on concrete params, before tracing."""
-        checks = {"step_length": (0.0, 0.2), "step_height": (0.0, 0.15), "swing_time": (0.05, 10.0)}
-        for f, (lo, hi) in checks.items():
-            v = np.asarray(getattr(params, f))
-            if not np.all(np.isfinite(v)) or np.any(v <= lo) or np.any(v > hi):
-                raise ValueError(f"gait.{f}={v.tolist()!r}: must be in ({lo}, {hi}]")
+        check_open_ranges("gait", params, {"step_length": (0.0, 0.2), "step_height": (0.0, 0.15),
+                                           "swing_time": (0.05, 10.0)})
 
     def init(self, params: GaitParams, key) -> GaitState:
         del params, key

@@ -36,7 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from hexjax.control.gait import PatternClock
+from hexjax.control.gait import PatternClock, check_open_ranges
 from hexjax.robot import N_LEGS, RobotSpec, body_to_leg, leg_ik, neutral_feet_body
 
 
@@ -108,10 +108,7 @@ class TactileGaitController(PatternClock):
         checks = {"step_length": (0.0, 0.2), "step_height": (0.0, 0.15), "swing_time": (0.05, 10.0),
                   "overcome_length": (0.0, 0.2), "overcome_height": (0.0, 0.2), "tactile_threshold": (0.0, 100.0),
                   "temperature": (0.0, 100.0)}
-        for f, (lo, hi) in checks.items():
-            v = np.asarray(getattr(params, f))
-            if not np.all(np.isfinite(v)) or np.any(v <= lo) or np.any(v > hi):
-                raise ValueError(f"tactile.{f}={v.tolist()!r}: must be in ({lo}, {hi}]")
+        check_open_ranges("tactile", params, checks)
         e = np.asarray(params.enable)
         if not np.all((e >= 0) & (e <= 1)):
             raise ValueError(f"tactile.enable={e.tolist()!r}: must be in [0, 1]")
