@@ -1,4 +1,4 @@
-"""The `hexjax` command: evaluate, experiment, bench, terrain."""
+"""The `hexjax` command: evaluate, experiment, dataset, predictor, bench, tune, terrain."""
 
 from __future__ import annotations
 
@@ -106,6 +106,48 @@ def _cmd_bench(a) -> int:
     return 0
 
 
+def _parse_sets(items):
+    """['steps=5', 'optimizer.learning_rate=0.2'] -> nested overrides, values parsed as YAML."""
+    import yaml
+    out = {}
+    for it in items or []:
+        key, eq, val = it.partition("=")
+        if not eq or not key:
+            raise ValueError(f"--set {it!r}: use key=value (e.g. --set steps=5)")
+        head, _, rest = key.partition(".")
+        v = yaml.safe_load(val)
+        if rest:
+            out.setdefault(head, {})[rest] = v
+        else:
+            out[head] = v
+    return out
+
+
+def _cmd_tune(a) -> int:
+    from hexjax.analysis.tune import tune, tune_es
+    from hexjax.analysis.tune_config import load_tune_config
+    sets = _parse_sets(a.set)
+    cfg = load_tune_config(a.config, sets, merge=True)
+    out = a.out or os.path.join("out", "tune", os.path.splitext(os.path.basename(a.config))[0])
+    results = []
+    if a.method in ("grad", "both"):
+        results.append(tune(cfg, os.path.join(out, "grad"), resume=not a.restart, time_limit=a.time_limit))
+    if a.method in ("es", "both"):
+        budget = a.rollouts or (results[0]["log"][-1]["rollouts"] if results else cfg.steps * cfg.train_batch)
+        results.append(tune_es(cfg, os.path.join(out, "es"), rollouts=budget, resume=not a.restart,
+                               time_limit=a.time_limit))
+    for r in results:
+        s, f = r["start"]["held_out"], r["final"]["held_out"]
+        print(f"{r['method']}: held-out objective {s['objective']:.4f} -> {f['objective']:.4f} m "
+              f"({r['improvement_pct']:+.1f} %), goal error {s['goal_error_cm']:.1f} -> {f['goal_error_cm']:.1f} cm "
+              f"(iterate {r['final']['step']}, picked on the validation terrains), "
+              f"{r['log'][-1]['rollouts']} rollouts, {r['log'][-1]['wall_s']:.0f} s")
+        for k, v in r["final"]["params"].items():
+            print(f"  {k}: {r['start']['params'][k]} -> {v}")
+    print(f"logs, checkpoints and plots under {out}/")
+    return 0
+
+
 def _cmd_terrain(a) -> int:
     import jax
     import matplotlib
@@ -191,6 +233,18 @@ def main(argv=None) -> int:
                         "switch); 'both' = gait,cpg. Rows other than gait get their cost against gait")
     b.add_argument("--json", default="", help="write the numbers here")
     b.set_defaults(fn=_cmd_bench)
+
+    tu = sub.add_parser("tune", help="tune controller params over randomised terrains (gradients, or CMA-ES)")
+    tu.add_argument("--config", default="configs/tune/tactile_tripod.yaml")
+    tu.add_argument("--method", default="grad", choices=["grad", "es", "both"],
+                    help="grad: Adam on windowed MJX gradients; es: CMA-ES (evosax); both: es gets grad's rollouts")
+    tu.add_argument("--out", default="", help="directory for checkpoint, log.json, tune.png (default out/tune/<config>)")
+    tu.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="override a config key, e.g. --set steps=5 --set optimizer.learning_rate=0.2")
+    tu.add_argument("--rollouts", type=int, default=0, help="es: rollout budget (default: grad's, or steps x train_batch)")
+    tu.add_argument("--time-limit", type=float, default=None, help="s of wall time per method (stops at a step boundary)")
+    tu.add_argument("--restart", action="store_true", help="ignore an existing checkpoint")
+    tu.set_defaults(fn=_cmd_tune)
 
     t = sub.add_parser("terrain", help="draw a sampled terrain")
     t.add_argument("--preset", default="high-large")

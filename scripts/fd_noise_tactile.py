@@ -1,6 +1,8 @@
 """Issue 5 exploration: is the mean advance of the smooth tactile gait on flat ground smooth enough for a
 finite-difference check? Prints the per-step-clipped autodiff gradient and central differences at several
-steps, for 32 envs over 0.5 s and 1 s. Usage: python scripts/fd_noise_tactile.py (about 4 min on 2 cores)."""
+steps, for 32 envs over 0.5 s and 1 s. Usage: python scripts/fd_noise_tactile.py (about 4 min on 2 cores).
+It uses one Newton iteration, as gradients then required; that unconverged solver is what makes the
+differences disagree (docs/tuning.md). tests/test_tune.py does the check with RolloutConfig.reversible_solver."""
 import dataclasses, jax, jax.numpy as jnp, numpy as np
 from hexjax.control.tactile import TactileGaitController
 from hexjax.robot import luneckas2020

@@ -67,7 +67,8 @@ def test_bad_configs_raise_clear_errors():
 def test_tune_config_file_and_its_errors(tmp_path):
     from hexjax.analysis.tune_config import load_tune_config
     cfg = load_tune_config("configs/tune/tactile_tripod.yaml")
-    assert cfg.space().names == ("overcome_height", "overcome_length", "tactile_threshold")
+    assert cfg.space().names == ("overcome_height", "overcome_length", "step_height", "step_length",
+                                 "tactile_threshold")
     assert cfg.optimizer["learning_rate"] > 0
     for bad, match in (({"optimizer": {"name": "adam", "learning_rate": 0.0}}, "learning_rate=0.0"),
                        ({"optimizer": {"name": "adam", "learning_rate": -1e-3}}, "learning_rate=-0.001"),

@@ -24,8 +24,11 @@ class TuneConfig:
     max_obstacle_height: float = 0.05
     train_batch: int = 8
     held_out_batch: int = 16
+    validation_batch: int = 16  # terrains that pick the returned iterate (0: return the last one)
     distance: float = 1.0
-    horizon: float = 2.0
+    horizon: float = 10.0  # s walked by controllers without a planned stop (cpg); the tactile gait walks `distance`
+    window: float = 0.2  # s: truncated-gradient window (`RolloutConfig.grad_window`)
+    grad_clip: float = 1.0  # bound on the backward flow through each control step (`RolloutConfig.grad_clip`)
     temperature: float = 0.05
     params: Dict[str, Dict[str, float]] = dataclasses.field(default_factory=dict)
     optimizer: Dict[str, object] = dataclasses.field(default_factory=lambda: {"name": "adam", "learning_rate": 0.05})
@@ -33,22 +36,32 @@ class TuneConfig:
     steps: int = 30
     eval_every: int = 10
     seed: int = 0
+    es_population: int = 8  # CMA-ES baseline: population size
+    es_sigma: float = 0.5  # CMA-ES baseline: initial step size on the unconstrained scale
 
     def validate(self) -> None:
         if self.terrain not in TERRAINS:
             raise ValueError(f"tune.terrain={self.terrain!r}: choose one of {sorted(TERRAINS)}")
-        for f in ("train_batch", "held_out_batch", "steps", "eval_every"):
+        if self.controller == "cpg" and self.gait not in ("tripod", "tetrapod", "wave"):
+            raise ValueError(f"tune.gait={self.gait!r}: the cpg controller walks 'tripod', 'tetrapod' or 'wave'")
+        if self.controller == "tactile" and self.gait not in ("tripod", "wave"):
+            raise ValueError(f"tune.gait={self.gait!r}: the tactile gait walks 'tripod' or 'wave'")
+        if not (isinstance(self.validation_batch, int) and self.validation_batch >= 0):
+            raise ValueError(f"tune.validation_batch={self.validation_batch!r}: must be an integer >= 0")
+        for f in ("train_batch", "held_out_batch", "steps", "eval_every", "es_population"):
             v = getattr(self, f)
             if not (isinstance(v, int) and not isinstance(v, bool) and v >= 1):
                 raise ValueError(f"tune.{f}={v!r}: must be an integer >= 1")
-        for f in ("distance", "horizon", "temperature"):
+        if self.es_population < 2:
+            raise ValueError(f"tune.es_population={self.es_population!r}: must be >= 2")
+        for f in ("distance", "horizon", "window", "grad_clip", "temperature", "es_sigma"):
             v = getattr(self, f)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ValueError(f"tune.{f}={v!r}: must be a finite number > 0")
         if not (0 <= self.max_obstacle_height <= 0.2):
             raise ValueError(f"tune.max_obstacle_height={self.max_obstacle_height!r}: must be in [0, 0.2] m")
         opt = dict(self.optimizer)
-        unknown = set(opt) - {"name", "learning_rate", "clip_norm"}
+        unknown = set(opt) - {"name", "learning_rate", "clip_norm", "decay_to"}
         if unknown:
             raise ValueError(f"tune.optimizer: unknown keys {sorted(unknown)}")
         if opt.get("name", "adam") not in OPTIMIZERS:
@@ -56,6 +69,9 @@ class TuneConfig:
         lr = opt.get("learning_rate", 0.05)
         if not (isinstance(lr, (int, float)) and math.isfinite(lr) and lr > 0):
             raise ValueError(f"tune.optimizer.learning_rate={lr!r}: must be a finite number > 0")
+        dec = opt.get("decay_to")
+        if dec is not None and not (isinstance(dec, (int, float)) and 0 < dec <= 1):
+            raise ValueError(f"tune.optimizer.decay_to={dec!r}: must be None or a fraction in (0, 1]")
         clip = opt.get("clip_norm")
         if clip is not None and not (isinstance(clip, (int, float)) and math.isfinite(clip) and clip > 0):
             raise ValueError(f"tune.optimizer.clip_norm={clip!r}: must be None or a finite number > 0")
@@ -72,8 +88,9 @@ class TuneConfig:
         return make_space(self.controller, overrides=self.params, only=list(self.params) or None)
 
 
-def load_tune_config(path: str, overrides: Optional[Dict] = None) -> TuneConfig:
-    """Read a YAML tuning config, apply `overrides` (top-level keys), check it, and return it."""
+def load_tune_config(path: str, overrides: Optional[Dict] = None, merge: bool = False) -> TuneConfig:
+    """Read a YAML tuning config, apply `overrides` (top-level keys; with `merge`, a dict value updates a
+    dict key such as optimizer instead of replacing it), check it, and return it."""
     try:
         with open(path) as f:
             raw = yaml.safe_load(f) or {}
@@ -81,7 +98,11 @@ def load_tune_config(path: str, overrides: Optional[Dict] = None) -> TuneConfig:
         raise ValueError(f"tune config {path!r} not found") from None
     if not isinstance(raw, dict):
         raise ValueError(f"{path}: expected a mapping of keys at the top level")
-    raw.update(overrides or {})
+    for k, v in (overrides or {}).items():
+        if merge and isinstance(v, dict) and isinstance(raw.get(k), dict):
+            raw[k] = {**raw[k], **v}
+        else:
+            raw[k] = v
     known = {f.name for f in dataclasses.fields(TuneConfig)}
     unknown = sorted(set(raw) - known)
     if unknown:

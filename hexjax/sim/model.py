@@ -216,3 +216,44 @@ def read_obs(sm: SimModel, sensors: SensorConfig, m, d) -> Obs:
         qpos=d.qpos[7:], qvel=d.qvel[6:], torso_pos=d.qpos[:3], torso_quat=d.qpos[3:7],
         foot_force=foot_force, foot_contact=foot_normal > sensors.contact_threshold,
         tactile_force=pad_normal, tactile=pad_normal > sensors.tactile_threshold, time=d.time)
+
+
+class _ScanLax:
+    """jax.lax with `while_loop` run as a fixed-length scan of `n` iterations (no-ops once done)."""
+
+    def __init__(self, n: int):
+        self.n = n
+
+    def __getattr__(self, name):
+        return getattr(jax.lax, name)
+
+    def while_loop(self, cond, body, init):
+        from mujoco.mjx._src import solver
+        return solver._while_loop_scan(cond, body, init, self.n)
+
+
+class _JaxWithScanLax:
+    def __init__(self, n: int):
+        self.lax = _ScanLax(n)
+
+    def __getattr__(self, name):
+        return getattr(jax, name)
+
+
+@contextlib.contextmanager
+def reversible_solver(iterations: int):
+    """While open, MJX's constraint solver traces its Newton iterations as a fixed-length scan instead of a
+    lax.while_loop, so reverse-mode gradients go through `iterations` > 1 (MJX already runs its line search
+    this way). Same result as the while loop: iterations after convergence are no-ops. Only tracing needs
+    the context; compiled functions keep what they traced. Relies on two private names of MJX's solver
+    module (its `jax` global and `_while_loop_scan`), present in the pinned mujoco-mjx 3.17.0."""
+    from mujoco.mjx._src import solver
+    if not (hasattr(solver, "_while_loop_scan") and getattr(solver, "jax", None) is not None):
+        raise RuntimeError("reversible_solver: this mujoco-mjx's solver lacks _while_loop_scan; "
+                           "use PhysicsConfig(iterations=1) for gradients instead")
+    prev = solver.jax
+    solver.jax = _JaxWithScanLax(iterations)
+    try:
+        yield
+    finally:
+        solver.jax = prev

@@ -17,7 +17,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
 from hexjax.mjcf import PhysicsConfig
 from hexjax.robot import RobotSpec
-from hexjax.sim.model import SensorConfig, assign_slots, env_model, mjx, read_obs, sim_model
+from hexjax.sim.model import SensorConfig, assign_slots, env_model, mjx, read_obs, reversible_solver, sim_model
 from hexjax.terrain import Terrain
 
 
@@ -34,11 +34,26 @@ class RolloutConfig:
     # state at every control step (None: exact gradients). Gradients through stiff contacts grow ~100x per 0.1 s and
     # overflow within a second; a per-step bound keeps them finite and their direction local.
     grad_clip: Optional[float] = None
+    # Reverse mode only: truncated gradients. Every `grad_window` control steps the physics and controller
+    # state are cut from the gradient (stop_gradient), so the gradient of `Summary.travel` is the sum of the
+    # per-window gradients with each window's start state held fixed (truncated backpropagation through
+    # time; 0: no cut). Its value is unchanged.
+    grad_window: int = 0
+    # Recompute each control step in the backward pass instead of storing its internals (jax.checkpoint):
+    # memory per env and step drops from every substep's solver residuals to one mjx.Data.
+    remat: bool = False
+    # Trace MJX's Newton iterations as a fixed-length scan (`hexjax.sim.model.reversible_solver`) so reverse
+    # mode works with physics.iterations > 1. Without it, gradients need iterations=1, and one unconverged
+    # Newton step makes the rollout non-smooth in the params (central differences flip sign with the step
+    # size; tests/test_tune.py).
+    reversible_solver: bool = False
     # Every this many control steps the compiled rollout reports its step index to the host (see
     # `progress_to`); 0: never. A host callback costs ~0.1 ms, so a few hundred calls are free.
     progress_every: int = 0
 
     def validate(self) -> None:
+        if not (isinstance(self.grad_window, int) and self.grad_window >= 0):
+            raise ValueError(f"rollout.grad_window={self.grad_window!r}: must be an integer >= 0")
         if not (isinstance(self.progress_every, int) and self.progress_every >= 0):
             raise ValueError(f"rollout.progress_every={self.progress_every!r}: must be an integer >= 0")
         if self.settle_time < 0:
@@ -105,6 +120,15 @@ def _clip_cotangent(tree, bound: float):
     return jax.tree_util.tree_unflatten(treedef, [next(out) if f else x for x, f in zip(leaves, is_f)])
 
 
+def _cut_gradient(tree, cut):
+    """Identity in value; where the traced bool `cut` holds, the float leaves of `tree` pass no gradient."""
+    def f(x):
+        if not jnp.issubdtype(jnp.asarray(x).dtype, jnp.floating):
+            return x
+        return jnp.where(cut, jax.lax.stop_gradient(x), x)
+    return jax.tree_util.tree_map(f, tree)
+
+
 @struct.dataclass
 class Summary:
     """Per-env outcome of a rollout (leading axis B on every field). Poses are (x m, y m, yaw rad).
@@ -114,6 +138,9 @@ class Summary:
     nan (B,) bool                 the state went non-finite; the env was frozen at its last finite state
     energy (B,) J                 integral of |torque * joint rate| over all joints
     path_length (B,) m            horizontal distance travelled by the torso
+    travel (B, 3)                 sum over control steps of the torso's (dx m, dy m, dyaw rad) in the world
+                                  frame: end pose - start pose (yaw unwrapped), with gradients truncated at
+                                  `RolloutConfig.grad_window` boundaries
     max_tilt (B,) rad, min_height (B,) m (torso centre above the ground plane)
     tactile_steps (B, 6)          control steps with each leg's tactile pad on
     trace (B, T, 4) or None       x, y, z, yaw per control step when RolloutConfig.record
@@ -130,6 +157,7 @@ class Summary:
     nan: jax.Array
     energy: jax.Array
     path_length: jax.Array
+    travel: jax.Array
     max_tilt: jax.Array
     min_height: jax.Array
     tactile_steps: jax.Array
@@ -186,6 +214,8 @@ def _compiled(robot: RobotSpec, physics: PhysicsConfig, sensors: SensorConfig, c
             if cfg.progress_every:
                 jax.lax.cond((i + 1) % cfg.progress_every == 0,
                              lambda: jax.debug.callback(_report_progress, i + 1), lambda: None)
+            if cfg.grad_window:
+                d, cstate = _cut_gradient((d, cstate), i % cfg.grad_window == 0)
             if cfg.grad_clip is not None:
                 d, cstate = _clip_cotangent((d, cstate), cfg.grad_clip)
             foot_xy = d.site_xpos[foot_sites, :2]
@@ -216,6 +246,8 @@ def _compiled(robot: RobotSpec, physics: PhysicsConfig, sensors: SensorConfig, c
             dxy = d_new.qpos[:2] - d.qpos[:2]
             step_xy = jnp.sqrt(jnp.sum(dxy * dxy) + 1e-18)  # offset keeps the derivative finite at rest
             pose = jnp.stack([d_new.qpos[0], d_new.qpos[1], _yaw(q)])
+            yaw_step = pose[2] - _yaw(d.qpos[3:7])
+            dyaw = jnp.arctan2(jnp.sin(yaw_step), jnp.cos(yaw_step))
             acc = dict(
                 start_pose=jnp.where(i == n_settle - 1, pose, acc["start_pose"]),
                 fell=acc["fell"] | fallen_now,
@@ -223,6 +255,7 @@ def _compiled(robot: RobotSpec, physics: PhysicsConfig, sensors: SensorConfig, c
                 nan=acc["nan"] | ~finite,
                 energy=acc["energy"] + jnp.where(walking & finite, jnp.sum(power) * dt, 0.0),
                 path_length=acc["path_length"] + jnp.where(walking & finite, step_xy, 0.0),
+                travel=acc["travel"] + jnp.where(walking, jnp.concatenate([dxy, dyaw[None]]), 0.0),
                 max_tilt=jnp.maximum(acc["max_tilt"], jnp.where(walking, tilt, 0.0)),
                 min_height=jnp.minimum(acc["min_height"], jnp.where(walking, height, jnp.inf)),
                 tactile_steps=acc["tactile_steps"] + (walking & obs.tactile).astype(jnp.int32),
@@ -238,11 +271,13 @@ def _compiled(robot: RobotSpec, physics: PhysicsConfig, sensors: SensorConfig, c
         start = jnp.stack([d0.qpos[0], d0.qpos[1], yaw0])
         acc0 = dict(start_pose=start, fell=jnp.asarray(False), fall_time=jnp.asarray(jnp.inf),
                     nan=jnp.asarray(False), energy=jnp.asarray(0.0), path_length=jnp.asarray(0.0),
+                    travel=jnp.zeros(3),
                     max_tilt=jnp.asarray(0.0), min_height=jnp.asarray(jnp.inf),
                     tactile_steps=jnp.zeros(6, jnp.int32))
         # forward once so site positions exist before the first slot assignment
         d0 = mjx.forward(m_shared, d0)
-        (d, cstate, acc), rec = jax.lax.scan(control_step, (d0, cstate0, acc0), jnp.arange(n_total))
+        body = jax.checkpoint(control_step, prevent_cse=False) if cfg.remat else control_step
+        (d, cstate, acc), rec = jax.lax.scan(body, (d0, cstate0, acc0), jnp.arange(n_total))
         end = jnp.stack([d.qpos[0], d.qpos[1], _yaw(d.qpos[3:7])])
         extra = {}
         if cfg.record:
@@ -251,7 +286,11 @@ def _compiled(robot: RobotSpec, physics: PhysicsConfig, sensors: SensorConfig, c
         return Summary(end_pose=end, final_state=cstate, **extra, **acc)
 
     def batched(m_shared, params, terrain, keys):
-        return jax.vmap(single, in_axes=(None, 0 if params_batched else None, 0, 0))(m_shared, params, terrain, keys)
+        run = jax.vmap(single, in_axes=(None, 0 if params_batched else None, 0, 0))
+        if cfg.reversible_solver:
+            with reversible_solver(physics.iterations):
+                return run(m_shared, params, terrain, keys)
+        return run(m_shared, params, terrain, keys)
 
     return sm, _AotFunction(jax.jit(batched))
 
@@ -334,8 +373,9 @@ def rollout_function(robot: RobotSpec, controller, duration: float, *, physics: 
                      params_batched: bool = False):
     """(model, fn) with fn(model, params, terrain, keys) -> Summary the pure jitted batched rollout, for use
     inside `jax.grad`, `jax.jit` or `vmap` (e.g. tuning controller params). keys: (B, 2) PRNG keys, one per
-    env. Same checks as `rollout` on the static inputs. For reverse-mode gradients use a physics config
-    with `iterations=1`: MJX runs more Newton iterations in a lax.while_loop, which JAX cannot reverse."""
+    env. Same checks as `rollout` on the static inputs. For reverse-mode gradients set
+    `RolloutConfig.reversible_solver` (or use a physics config with `iterations=1`): MJX runs its Newton
+    iterations in a lax.while_loop, which JAX cannot reverse."""
     robot.validate(); physics.validate(); config.validate()
     if not (isinstance(duration, (int, float)) and math.isfinite(duration) and duration > 0):
         raise ValueError(f"duration={duration!r}: must be a finite number of seconds > 0")

@@ -1,0 +1,146 @@
+"""Issue 5: gradients through the MJX rollout agree with central differences per parameter group; the
+objective's terms; tuning runs are deterministic and resume from their checkpoints; CLI config errors."""
+
+import json
+import os
+import shutil
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from hexjax.analysis.space import make_space
+from hexjax.analysis.tune import per_env_objective, tune
+from hexjax.analysis.tune_config import TuneConfig
+from hexjax.control.tactile import TactileGaitController
+from hexjax.mjcf import physics_for
+from hexjax.robot import luneckas2020
+from hexjax.sim.rollout import RolloutConfig, Summary, rollout_function
+from hexjax.terrain import get_terrain, sample
+
+# the tactile preset's parameter groups (docs/tuning.md says why the CPG preset is not in this check)
+GROUPS = {"gait": ["step_length", "step_height", "swing_time"],
+          "overcoming": ["overcome_length", "overcome_height"], "threshold": ["tactile_threshold"]}
+
+
+def test_gradient_matches_central_differences_per_group():
+    """The acceptance check: on a smooth objective (the mean travel of 4 envs over a 0.4 s window on flat
+    ground, MJX's default two Newton iterations traced as a scan), the autodiff gradient with respect to
+    the unconstrained params has cosine >= 0.9 with central differences, for every parameter group."""
+    robot = luneckas2020()
+    ctrl = TactileGaitController(robot, gait="tripod", smooth=True)
+    # a fast gait (0.2 s swing slots) and a threshold inside the gate's width, so that one 0.4 s window
+    # holds a lift-off where every group (basic step, overcoming step, threshold) acts
+    p = ctrl.default_params().replace(swing_time=jnp.float32(0.2), tactile_threshold=jnp.float32(0.1),
+                                      temperature=jnp.float32(0.1))
+    space = make_space("tactile")
+    u0 = space.init(p)
+    spec = get_terrain("flat")
+    terr = sample(spec, jax.random.PRNGKey(0), 4)
+    keys = jax.random.split(jax.random.PRNGKey(1), 4)
+    model, fn = rollout_function(robot, ctrl, 0.4, physics=physics_for(spec.kind),
+                                 config=RolloutConfig(settle_time=0.1, reversible_solver=True))
+
+    def obj(u):
+        s = fn(model, space.apply(u, p), terr, keys)
+        return jnp.mean(s.travel[:, 0]) + 0.3 * jnp.mean(s.travel[:, 1]) + 0.1 * jnp.mean(s.travel[:, 2])
+
+    g = jax.jit(jax.grad(obj))(u0)
+    f = jax.jit(obj)
+    eps = 1e-3
+    fd = {}
+    for k, v in u0.items():
+        col = np.zeros(v.size)
+        for j in range(v.size):
+            d = jnp.zeros(v.size).at[j].set(eps).reshape(v.shape)
+            col[j] = (float(f({**u0, k: v + d})) - float(f({**u0, k: v - d}))) / (2 * eps)
+        fd[k] = col
+    for group, names in GROUPS.items():
+        a = np.concatenate([np.ravel(np.asarray(g[n])) for n in names])
+        b = np.concatenate([fd[n] for n in names])
+        assert np.all(np.isfinite(a)) and np.linalg.norm(b) > 0, (group, a, b)
+        cos = float(a @ b / (np.linalg.norm(a) * np.linalg.norm(b)))
+        assert cos >= 0.9, f"{group}: cosine {cos:.3f}, autodiff {a}, central differences {b}"
+
+
+def _summary(travel, yaw0, fell, nan, energy):
+    b = len(yaw0)
+    z = jnp.zeros(b)
+    start = jnp.stack([z, z, jnp.asarray(yaw0)], -1)
+    return Summary(start_pose=start, end_pose=start, fell=jnp.asarray(fell), fall_time=z, nan=jnp.asarray(nan),
+                   energy=jnp.asarray(energy), path_length=z, travel=jnp.asarray(travel), max_tilt=z, min_height=z,
+                   tactile_steps=jnp.zeros((b, 6), jnp.int32))
+
+
+def test_objective_terms_in_the_start_frame():
+    # env 0 faces +y and walks 0.8 m along it: 0.2 m short, no lateral error;
+    # env 1 faces +x, walks 1.0 m and drifts 0.1 m left, turning 0.2 rad; env 2 fell; env 3 went NaN
+    s = _summary(travel=[[0.0, 0.8, 0.0], [1.0, 0.1, 0.2], [0.5, 0.0, 0.0], [9.0, 9.0, 0.0]],
+                 yaw0=[np.pi / 2, 0.0, 0.0, 0.0], fell=[False, False, True, True], nan=[False, False, False, True],
+                 energy=[2.0, 1.0, 0.0, 0.0])
+    j = np.asarray(per_env_objective(s, 1.0, {"dx": 1.0, "dy": 1.0, "fall": 3.0}))
+    np.testing.assert_allclose(j, [0.2, 0.1, 0.5 + 3.0, 3.0], atol=1e-4)
+    j = np.asarray(per_env_objective(s, 1.0, {"dx": 1.0, "dalpha": 1.0, "energy": 0.5}))
+    np.testing.assert_allclose(j[:2], [0.2 + 1.0, 0.0 + 0.2 + 0.5], atol=1e-4)
+
+
+def _small_config(**kw):
+    base = dict(controller="tactile", gait="tripod", terrain="low-small", distance=0.2, train_batch=2,
+                held_out_batch=2, validation_batch=2, window=0.2, steps=2, eval_every=1, seed=3,
+                params={"step_length": {"min": 0.01, "max": 0.08}, "overcome_height": {"min": 0.02, "max": 0.12}},
+                optimizer={"name": "adam", "learning_rate": 0.2})
+    base.update(kw)
+    return TuneConfig(**base)
+
+
+def _numbers(log):
+    """The log without wall times."""
+    return [{k: v for k, v in e.items() if k != "wall_s"} for e in log]
+
+
+def test_tuning_is_deterministic_and_resumes(tmp_path):
+    cfg = _small_config()
+    a = tune(cfg, str(tmp_path / "a"), progress=False)
+    b = tune(cfg, str(tmp_path / "b"), progress=False)
+    assert _numbers(a["log"]) == _numbers(b["log"])
+    assert a["log"][-1]["step"] == 2 and all(e["grad_finite"] for e in a["log"][1:])
+    # the params moved, within their bounds; the returned iterate is the best on the validation terrains
+    moved = a["last"]["params"]
+    assert moved != a["start"]["params"] and 0.01 <= moved["step_length"] <= 0.08
+    evaluated = [e for e in a["log"] if "validation" in e]
+    assert len(evaluated) == 3 and a["final"]["validation"]["objective"] == min(
+        e["validation"]["objective"] for e in evaluated)
+    assert os.path.exists(tmp_path / "a" / "tune.png") and os.path.exists(tmp_path / "a" / "log.json")
+    # extend run a by one step from its checkpoint; it must match a fresh 3-step run
+    c = tune(_small_config(steps=3), str(tmp_path / "a"), progress=False)
+    shutil.rmtree(tmp_path / "b")
+    d = tune(_small_config(steps=3), str(tmp_path / "b"), progress=False)
+    assert _numbers(c["log"]) == _numbers(d["log"]) and c["log"][-1]["step"] == 3
+    with open(tmp_path / "a" / "log.json") as fh:
+        assert json.load(fh)["log"][-1]["step"] == 3
+    # a checkpoint from another config is refused, not silently continued
+    with pytest.raises(ValueError, match="different config"):
+        tune(_small_config(seed=4), str(tmp_path / "a"), progress=False)
+
+
+def test_cli_tune_rejects_bad_configs(capsys):
+    from hexjax.cli import main
+    for sets, msg in ((["optimizer.learning_rate=0"], "learning_rate=0"),
+                      (["params={wing_span: {min: 0, max: 1}}"], "params.wing_span: unknown parameter"),
+                      (["params={overcome_height: {min: 0.1, max: 0.02}}"], "min=0.1 must be < max=0.02"),
+                      (["steps"], "use key=value")):
+        rc = main(["tune", "--config", "configs/tune/tactile_tripod.yaml"] + sum([["--set", s] for s in sets], []))
+        assert rc == 2
+        assert msg in capsys.readouterr().err
+
+
+def test_es_baseline_runs_on_the_same_objective_and_is_deterministic(tmp_path):
+    from hexjax.analysis.tune import tune_es
+    cfg = _small_config(es_population=2)
+    a = tune_es(cfg, str(tmp_path / "a"), rollouts=8, progress=False)  # 2 generations of 2 x 2 rollouts
+    b = tune_es(cfg, str(tmp_path / "b"), rollouts=8, progress=False)
+    assert _numbers(a["log"]) == _numbers(b["log"])
+    assert [e["rollouts"] for e in a["log"]] == [0, 4, 8]
+    assert a["last"]["params"] != a["start"]["params"]
+    assert np.isfinite(a["final"]["held_out"]["objective"])
