@@ -259,50 +259,62 @@ def tune(cfg: TuneConfig, out_dir: str, resume: bool = True, progress: bool = Tr
               "trustworthy; consider --method es")
     u0 = problem.space.init(problem.params0)
     opt = make_optimizer(cfg)
-    state = (u0, opt.init(u0))
     digest = _config_digest(cfg, "grad")
+    model, fn = problem.train_rollout(grad=True)
+    vg = _cached(digest + "/vg", lambda: jax.jit(jax.value_and_grad(problem.loss_fn(fn, model), has_aux=True)))
+
+    def advance(state, step):
+        u, opt_state = state
+        terr, keys = problem.train_batch(step)
+        (loss, _), g = vg(u, terr, keys)
+        ok = _finite(g) and math.isfinite(float(loss))
+        if ok:
+            upd, opt_state = opt.update(g, opt_state, u)
+            u = optax.apply_updates(u, upd)
+        return (u, opt_state), {"train_objective": float(loss), "grad_finite": ok,
+                                "grad_norm": float(optax.global_norm(g)) if ok else None}
+
+    return _drive(problem, out_dir, "grad", digest, (u0, opt.init(u0)), lambda st: st[0], advance, cfg.steps,
+                  cfg.train_batch, lambda step: step % cfg.eval_every == 0, resume, progress, time_limit, t_start)
+
+
+def _drive(problem: Problem, out_dir: str, method: str, digest: str, state, params_of, advance, n_steps: int,
+           rollouts_per_step: int, should_eval, resume: bool, progress: bool, time_limit, t_start: float):
+    """The loop both methods share: resume from out_dir/checkpoint.npz, evaluate the start, then `advance`
+    (state, step) -> (state, log fields) up to `n_steps` times or until `time_limit`, evaluating where
+    `should_eval(step)` and at the end, checkpointing after every step. `params_of(state)` gives the
+    unconstrained params to evaluate."""
     ckpt = os.path.join(out_dir, "checkpoint.npz")
     step, log = 0, []
     if resume and os.path.exists(ckpt):
         state, step, log = load_checkpoint(ckpt, state, digest)
         print(f"resumed from {ckpt} at step {step}")
-    model, fn = problem.train_rollout(grad=True)
-    vg = _cached(digest + "/vg", lambda: jax.jit(jax.value_and_grad(problem.loss_fn(fn, model), has_aux=True)))
     em, efn = problem.eval_rollout()
-    n_rollouts = step * cfg.train_batch
-    bar = tqdm(total=cfg.steps, initial=step, desc="tune (grad)", unit="step", disable=not progress)
+    bar = tqdm(total=n_steps, initial=step, desc=f"tune ({method})", unit="step", disable=not progress)
     if step == 0:
-        log.append({"step": 0, "rollouts": 0, "wall_s": 0.0, **_evaluate(problem, state[0], efn, em),
-                    "params": _jsonable(problem.space.physical(state[0]))})
-    while step < cfg.steps:
+        u = params_of(state)
+        log.append({"step": 0, "rollouts": 0, "wall_s": 0.0, **_evaluate(problem, u, efn, em),
+                    "params": _jsonable(problem.space.physical(u))})
+    while step < n_steps:
         if time_limit is not None and time.perf_counter() - t_start > time_limit:
             print(f"time limit {time_limit:.0f} s reached at step {step}")
             break
-        u, opt_state = state
-        terr, keys = problem.train_batch(step)
-        (loss, per_env), g = vg(u, terr, keys)
-        ok = _finite(g) and math.isfinite(float(loss))
-        if ok:
-            upd, opt_state = opt.update(g, opt_state, u)
-            u = optax.apply_updates(u, upd)
-        state = (u, opt_state)
+        state, fields = advance(state, step)
         step += 1
-        n_rollouts += cfg.train_batch
-        entry = {"step": step, "rollouts": n_rollouts, "wall_s": time.perf_counter() - t_start,
-                 "train_objective": float(loss), "grad_finite": ok,
-                 "grad_norm": float(optax.global_norm(g)) if ok else None,
-                 "params": _jsonable(problem.space.physical(u))}
-        if step % cfg.eval_every == 0 or step == cfg.steps:
+        u = params_of(state)
+        entry = {"step": step, "rollouts": step * rollouts_per_step, "wall_s": time.perf_counter() - t_start,
+                 **fields, "params": _jsonable(problem.space.physical(u))}
+        if should_eval(step) or step == n_steps:
             entry.update(_evaluate(problem, u, efn, em))
         log.append(entry)
         save_checkpoint(ckpt, state, step, log, digest)
-        bar.set_postfix(train=f"{float(loss):.3f}", held=f"{_last_held(log):.3f}")
+        bar.set_postfix(train=f"{fields['train_objective']:.3f}", held=f"{_last_held(log):.3f}")
         bar.update(1)
     bar.close()
     if "held_out" not in log[-1]:
-        log[-1].update(_evaluate(problem, state[0], efn, em))
+        log[-1].update(_evaluate(problem, params_of(state), efn, em))
         save_checkpoint(ckpt, state, step, log, digest)
-    return _finish(problem, log, out_dir, "grad", state[0])
+    return _finish(problem, log, out_dir, method)
 
 
 def _evaluate(problem: Problem, u, fn, model) -> Dict[str, Any]:
@@ -323,10 +335,9 @@ def _jsonable(d):
     return {k: np.asarray(v).tolist() for k, v in d.items()}
 
 
-def _finish(problem: Problem, log, out_dir: str, method: str, u) -> Dict[str, Any]:
+def _finish(problem: Problem, log, out_dir: str, method: str) -> Dict[str, Any]:
     """The run's result: `final` is the evaluated iterate with the lowest validation objective (the last
     one without a validation set), reported on the held-out set; `last` is the last iterate."""
-    del u  # the log holds every evaluated iterate's params
     evaluated = [e for e in log if "held_out" in e]
     key = "validation" if problem.cfg.validation_batch else None
     pick = min(evaluated, key=lambda e: e[key]["objective"]) if key else evaluated[-1]
@@ -383,13 +394,7 @@ def tune_es(cfg: TuneConfig, out_dir: str, rollouts: int, resume: bool = True, p
     es = CMA_ES(population_size=pop, solution=u0)
     es_params = es.default_params.replace(std_init=jnp.float32(cfg.es_sigma))
     key = jax.random.PRNGKey(cfg.seed + 7)
-    state = es.init(key, u0, es_params)
     digest = _config_digest(cfg, f"es{pop}")
-    ckpt = os.path.join(out_dir, "checkpoint.npz")
-    gen, log = 0, []
-    if resume and os.path.exists(ckpt):
-        state, gen, log = load_checkpoint(ckpt, state, digest)
-        print(f"resumed from {ckpt} at generation {gen}")
     model, fn = problem.train_rollout(grad=False, params_batched=True)
     B = cfg.train_batch
 
@@ -403,39 +408,20 @@ def tune_es(cfg: TuneConfig, out_dir: str, rollouts: int, resume: bool = True, p
         return j.reshape(pop, B).mean(1)
 
     pop_loss = _cached(digest + "/pop", lambda: jax.jit(population_loss))
-    em, efn = problem.eval_rollout()
-    n_gen = max(1, rollouts // (pop * B))
-    bar = tqdm(total=n_gen, initial=gen, desc=f"tune (CMA-ES, pop {pop})", unit="gen", disable=not progress)
-    if gen == 0:
-        log.append({"step": 0, "rollouts": 0, "wall_s": 0.0, **_evaluate(problem, u0, efn, em),
-                    "params": _jsonable(problem.space.physical(u0))})
-    while gen < n_gen:
-        if time_limit is not None and time.perf_counter() - t_start > time_limit:
-            print(f"time limit {time_limit:.0f} s reached at generation {gen}")
-            break
+
+    def advance(state, gen):
         k_ask, k_tell = jax.random.split(jax.random.fold_in(key, gen))
         pop_u, state = es.ask(k_ask, state, es_params)
         terr, keys = problem.train_batch(gen)
         fit = pop_loss(pop_u, terr, keys)
         fit = jnp.where(jnp.isfinite(fit), fit, jnp.max(jnp.where(jnp.isfinite(fit), fit, 0.0)) + 1.0)
         state, _ = es.tell(k_tell, pop_u, fit, state, es_params)
-        gen += 1
-        mean = es.get_mean(state)
-        entry = {"step": gen, "rollouts": gen * pop * B, "wall_s": time.perf_counter() - t_start,
-                 "train_objective": float(jnp.mean(fit)), "best_in_generation": float(jnp.min(fit)),
-                 "params": _jsonable(problem.space.physical(mean))}
-        if (gen * pop) // cfg.eval_every > ((gen - 1) * pop) // cfg.eval_every or gen == n_gen:
-            entry.update(_evaluate(problem, mean, efn, em))
-        log.append(entry)
-        save_checkpoint(ckpt, state, gen, log, digest)
-        bar.set_postfix(mean_fit=f"{float(jnp.mean(fit)):.3f}", held=f"{_last_held(log):.3f}")
-        bar.update(1)
-    bar.close()
-    mean = es.get_mean(state)
-    if "held_out" not in log[-1]:
-        log[-1].update(_evaluate(problem, mean, efn, em))
-        save_checkpoint(ckpt, state, gen, log, digest)
-    return _finish(problem, log, out_dir, f"cma-es (pop {pop})", mean)
+        return state, {"train_objective": float(jnp.mean(fit)), "best_in_generation": float(jnp.min(fit))}
+
+    # evaluate whenever the rollouts used cross a multiple of the gradient run's evaluation period
+    should_eval = lambda gen: (gen * pop) // cfg.eval_every > ((gen - 1) * pop) // cfg.eval_every
+    return _drive(problem, out_dir, f"cma-es (pop {pop})", digest, es.init(key, u0, es_params), es.get_mean,
+                  advance, max(1, rollouts // (pop * B)), pop * B, should_eval, resume, progress, time_limit, t_start)
 
 
 def compare_plot(rows, path: str) -> None:
