@@ -83,3 +83,22 @@ def test_tune_config_file_and_its_errors(tmp_path):
             load_tune_config("configs/tune/tactile_tripod.yaml", overrides=bad)
     with pytest.raises(ValueError, match="not found"):
         load_tune_config(str(tmp_path / "nope.yaml"))
+
+
+def test_every_shipped_tune_config_builds():
+    """Each configs/tune/*.yaml validates, its start lies inside its bounds, and its physics is the one it
+    asks for (the CPG config's 4 solver iterations reach both the training and the held-out rollouts)."""
+    import glob
+
+    from hexjax.analysis.tune import Problem
+    from hexjax.analysis.tune_config import load_tune_config
+    paths = sorted(glob.glob("configs/tune/*.yaml"))
+    assert len(paths) >= 2
+    for path in paths:
+        cfg = load_tune_config(path)
+        problem = Problem.build(cfg)
+        problem.space.init(problem.params0)
+        assert problem.physics().iterations == (cfg.solver_iterations or 2), path
+    cpg = Problem.build(load_tune_config("configs/tune/cpg_tripod.yaml"))
+    assert cpg.robot.name == "yu2019" and cpg.physics().iterations == 4
+    assert float(cpg.params0.temp_force) == 1.0  # the controller's own temperatures when the config sets none

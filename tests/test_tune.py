@@ -1,6 +1,7 @@
 """Issue 5: gradients through the MJX rollout agree with central differences per parameter group; the
 objective's terms; tuning runs are deterministic and resume from their checkpoints; CLI config errors."""
 
+import dataclasses
 import json
 import os
 import shutil
@@ -13,15 +14,43 @@ import pytest
 from hexjax.analysis.space import make_space
 from hexjax.analysis.tune import per_env_objective, tune
 from hexjax.analysis.tune_config import TuneConfig
+from hexjax.control.cpg import CPGController
 from hexjax.control.tactile import TactileGaitController
 from hexjax.mjcf import physics_for
-from hexjax.robot import luneckas2020
+from hexjax.robot import luneckas2020, yu2019
 from hexjax.sim.rollout import RolloutConfig, Summary, rollout_function
 from hexjax.terrain import get_terrain, sample
 
-# the tactile preset's parameter groups (docs/tuning.md says why the CPG preset is not in this check)
+# the tactile preset's parameter groups
 GROUPS = {"gait": ["step_length", "step_height", "swing_time"],
           "overcoming": ["overcome_length", "overcome_height"], "threshold": ["tactile_threshold"]}
+
+
+def _cosines(obj, u0, groups, eps=1e-3):
+    """Per group: (cosine of the autodiff gradient of obj at u0 with central differences, autodiff, FD)."""
+    g = jax.jit(jax.grad(obj))(u0)
+    f = jax.jit(obj)
+    fd = {}
+    for k, v in u0.items():
+        col = np.zeros(v.size)
+        for j in range(v.size):
+            d = jnp.zeros(v.size).at[j].set(eps).reshape(v.shape)
+            col[j] = (float(f({**u0, k: v + d})) - float(f({**u0, k: v - d}))) / (2 * eps)
+        fd[k] = col
+    out = {}
+    for group, names in groups.items():
+        a = np.concatenate([np.ravel(np.asarray(g[n])) for n in names])
+        b = np.concatenate([fd[n] for n in names])
+        assert np.all(np.isfinite(a)) and np.linalg.norm(b) > 0, (group, a, b)
+        out[group] = (float(a @ b / (np.linalg.norm(a) * np.linalg.norm(b))), a, b)
+    return out
+
+
+def _travel_objective(fn, model, space, p, terr, keys):
+    def obj(u):
+        s = fn(model, space.apply(u, p), terr, keys)
+        return jnp.mean(s.travel[:, 0]) + 0.3 * jnp.mean(s.travel[:, 1]) + 0.1 * jnp.mean(s.travel[:, 2])
+    return obj
 
 
 def test_gradient_matches_central_differences_per_group():
@@ -35,32 +64,43 @@ def test_gradient_matches_central_differences_per_group():
     p = ctrl.default_params().replace(swing_time=jnp.float32(0.2), tactile_threshold=jnp.float32(0.1),
                                       temperature=jnp.float32(0.1))
     space = make_space("tactile")
-    u0 = space.init(p)
     spec = get_terrain("flat")
     terr = sample(spec, jax.random.PRNGKey(0), 4)
     keys = jax.random.split(jax.random.PRNGKey(1), 4)
     model, fn = rollout_function(robot, ctrl, 0.4, physics=physics_for(spec.kind),
                                  config=RolloutConfig(settle_time=0.1, reversible_solver=True))
+    res = _cosines(_travel_objective(fn, model, space, p, terr, keys), space.init(p), GROUPS)
+    for group, (cos, a, b) in res.items():
+        assert cos >= 0.9, f"{group}: cosine {cos:.3f}, autodiff {a}, central differences {b}"
 
-    def obj(u):
-        s = fn(model, space.apply(u, p), terr, keys)
-        return jnp.mean(s.travel[:, 0]) + 0.3 * jnp.mean(s.travel[:, 1]) + 0.1 * jnp.mean(s.travel[:, 2])
 
-    g = jax.jit(jax.grad(obj))(u0)
-    f = jax.jit(obj)
-    eps = 1e-3
-    fd = {}
-    for k, v in u0.items():
-        col = np.zeros(v.size)
-        for j in range(v.size):
-            d = jnp.zeros(v.size).at[j].set(eps).reshape(v.shape)
-            col[j] = (float(f({**u0, k: v + d})) - float(f({**u0, k: v - d}))) / (2 * eps)
-        fd[k] = col
-    for group, names in GROUPS.items():
-        a = np.concatenate([np.ravel(np.asarray(g[n])) for n in names])
-        b = np.concatenate([fd[n] for n in names])
-        assert np.all(np.isfinite(a)) and np.linalg.norm(b) > 0, (group, a, b)
-        cos = float(a @ b / (np.linalg.norm(a) * np.linalg.norm(b)))
+def test_cpg_gradient_matches_central_differences():
+    """The same check for the seed-003 CPG on `yu2019`, for every group of the "cpg" preset: the linear
+    converter (trims, clearance; Eq. 6), the contact thresholds F_contact (Eqs. 8-9) and the elevator reflex
+    (T_s, regenerated clearance; Eqs. 10-11). Two settings differ from the tactile check (docs/tuning.md):
+    4 Newton iterations (with 2 the solver does not converge under the stiff servos and the rollout is rough)
+    and phase gates scaled with the network's rate (it runs 5x faster so that the window holds a lift-off,
+    so temp_phase is 5x too). As the tactile check puts its threshold inside the gate's width, F_contact-x/y
+    of 1 N inside a 3 N force gate lets the elevator fire in part at every swing on flat ground, so its
+    params act on the travel."""
+    robot = yu2019()
+    ctrl = CPGController(robot, smooth=True)
+    p = ctrl.default_params()
+    p = p.replace(net=p.net.replace(omega=5.0 * p.net.omega), temp_phase=5.0 * p.temp_phase,
+                  temp_force=jnp.float32(3.0), f_contact=jnp.array([1.0, 1.0, 2.0]))
+    space = make_space("cpg")
+    spec = get_terrain("flat")
+    terr = sample(spec, jax.random.PRNGKey(0), 4)
+    keys = jax.random.split(jax.random.PRNGKey(1), 4)
+    phys = dataclasses.replace(physics_for(spec.kind), iterations=4)
+    model, fn = rollout_function(robot, ctrl, 0.4, physics=phys,
+                                 config=RolloutConfig(settle_time=0.1, reversible_solver=True))
+    groups = {"converter": ["lc_trim", "clearance"], "contact thresholds": ["f_contact"],
+              "elevator": ["elevated_clearance", "ramp_time"]}
+    assert sorted(sum(groups.values(), [])) == sorted(space.names)
+    res = _cosines(_travel_objective(fn, model, space, p, terr, keys), space.init(p), groups)
+    for group, (cos, a, b) in res.items():
+        print(group, f"cosine {cos:.3f} |autodiff| {np.linalg.norm(a):.3g} |FD| {np.linalg.norm(b):.3g}")
         assert cos >= 0.9, f"{group}: cosine {cos:.3f}, autodiff {a}, central differences {b}"
 
 
@@ -129,6 +169,7 @@ def test_cli_tune_rejects_bad_configs(capsys):
     for sets, msg in ((["optimizer.learning_rate=0"], "learning_rate=0"),
                       (["params={wing_span: {min: 0, max: 1}}"], "params.wing_span: unknown parameter"),
                       (["params={overcome_height: {min: 0.1, max: 0.02}}"], "min=0.1 must be < max=0.02"),
+                      (["solver_iterations=0"], "tune.solver_iterations=0"),
                       (["steps"], "use key=value")):
         rc = main(["tune", "--config", "configs/tune/tactile_tripod.yaml"] + sum([["--set", s] for s in sets], []))
         assert rc == 2

@@ -29,7 +29,12 @@ class TuneConfig:
     horizon: float = 10.0  # s walked by controllers without a planned stop (cpg); the tactile gait walks `distance`
     window: float = 0.2  # s: truncated-gradient window (`RolloutConfig.grad_window`)
     grad_clip: float = 1.0  # bound on the backward flow through each control step (`RolloutConfig.grad_clip`)
-    temperature: float = 0.05
+    # smooth-gate temperature: the tactile pad gate (N), or the CPG's force gate temp_force (N); None keeps
+    # the controller's own default (tactile 0.05, CPG 1 N with temp_phase 0.05 and temp_height 2 mm)
+    temperature: Optional[float] = None
+    # MJX Newton iterations of both the training and the evaluation physics (None: PhysicsConfig's 2). The
+    # CPG on `yu2019` needs 4 for gradients that agree with finite differences (docs/tuning.md)
+    solver_iterations: Optional[int] = None
     params: Dict[str, Dict[str, float]] = dataclasses.field(default_factory=dict)
     optimizer: Dict[str, object] = dataclasses.field(default_factory=lambda: {"name": "adam", "learning_rate": 0.05})
     objective: Dict[str, float] = dataclasses.field(default_factory=lambda: {"dx": 1.0, "dy": 1.0})
@@ -54,8 +59,13 @@ class TuneConfig:
                 raise ValueError(f"tune.{f}={v!r}: must be an integer >= 1")
         if self.es_population < 2:
             raise ValueError(f"tune.es_population={self.es_population!r}: must be >= 2")
+        it = self.solver_iterations
+        if it is not None and not (isinstance(it, int) and not isinstance(it, bool) and 1 <= it <= 32):
+            raise ValueError(f"tune.solver_iterations={it!r}: must be None or an integer in [1, 32]")
         for f in ("distance", "horizon", "window", "grad_clip", "temperature", "es_sigma"):
             v = getattr(self, f)
+            if f == "temperature" and v is None:
+                continue
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ValueError(f"tune.{f}={v!r}: must be a finite number > 0")
         if not (0 <= self.max_obstacle_height <= 0.2):

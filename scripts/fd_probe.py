@@ -1,0 +1,106 @@
+"""Issue 5 diagnostic: does the autodiff gradient of a short smooth rollout agree with central differences?
+
+One robot, one controller, one solver setting per call; prints the cosine and the norms per parameter
+(or group) at several finite-difference steps. The objective is the one of tests/test_tune.py: the mean
+travel x + 0.3 y + 0.1 yaw of B envs over a `--window` s rollout on flat ground (or before a face across
+the path, `--face X`), with MJX's Newton iterations traced as a scan. About 2-3 min per call on 2 cores.
+
+  python scripts/fd_probe.py --robot yu2019 --ctrl gait                 # open-loop seed-000 gait
+  python scripts/fd_probe.py --ctrl cpg-blind --iters 2                  # CPG without feedback, 2 iterations
+  python scripts/fd_probe.py --ctrl cpg --iters 4 --omega 5 --tphase 5 --tforce 3   # the test's setting
+
+docs/tuning.md lists what these calls measured.
+"""
+import argparse
+import dataclasses
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from hexjax.analysis.space import Bound, ParamSpace, make_space
+from hexjax.control.cpg import CPGController
+from hexjax.control.gait import GaitController
+from hexjax.control.tactile import TactileGaitController
+from hexjax.mjcf import physics_for
+from hexjax.robot import get_robot
+from hexjax.sim.rollout import RolloutConfig, rollout_function
+from hexjax.terrain import get_terrain, sample
+
+ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+ap.add_argument("--robot", default="yu2019", help="robot preset")
+ap.add_argument("--ctrl", default="cpg", choices=["cpg", "cpg-blind", "tactile", "gait"])
+ap.add_argument("--iters", type=int, default=2, help="MJX Newton iterations")
+ap.add_argument("--window", type=float, default=0.4, help="rollout seconds after settling")
+ap.add_argument("--settle", type=float, default=0.1)
+ap.add_argument("--eps", default="1e-3,1e-2", help="central-difference steps on the unconstrained scale")
+ap.add_argument("--B", type=int, default=4, help="envs")
+ap.add_argument("--fields", default="", help="cpg: comma-separated subset of the preset's fields")
+ap.add_argument("--omega", type=float, default=1.0, help="cpg: factor on the network's frequencies")
+ap.add_argument("--tphase", type=float, default=1.0, help="cpg: factor on temp_phase")
+ap.add_argument("--tforce", type=float, default=1.0, help="cpg: factor on temp_force (1 N)")
+ap.add_argument("--fc", type=float, default=0.0, help="cpg: set F_contact-x/y to this (N); 0 keeps 10 N")
+ap.add_argument("--face", type=float, default=0.0, help="put a full-width face at this x (m); 0: flat")
+ap.add_argument("--faceh", type=float, default=0.06, help="face height, m")
+a = ap.parse_args()
+
+robot = get_robot(a.robot)
+if a.ctrl.startswith("cpg"):
+    ctrl = CPGController(robot, smooth=True, feedback=(a.ctrl == "cpg"))
+    p = ctrl.default_params()
+    p = p.replace(temp_force=p.temp_force * a.tforce, temp_phase=p.temp_phase * a.tphase,
+                  net=p.net.replace(omega=p.net.omega * a.omega))
+    if a.fc:
+        p = p.replace(f_contact=p.f_contact.at[:2].set(a.fc))
+    space = make_space("cpg", only=a.fields.split(",") if a.fields else None)
+    groups = {n: [n] for n in space.names}
+elif a.ctrl == "tactile":  # the setting of tests/test_tune.py
+    ctrl = TactileGaitController(robot, gait="tripod", smooth=True)
+    p = ctrl.default_params().replace(swing_time=jnp.float32(0.2), tactile_threshold=jnp.float32(0.1),
+                                      temperature=jnp.float32(0.1))
+    space = make_space("tactile")
+    groups = {"gait": ["step_length", "step_height", "swing_time"],
+              "overcoming": ["overcome_length", "overcome_height"], "threshold": ["tactile_threshold"]}
+else:
+    ctrl = GaitController(robot, gait="tripod")
+    p = ctrl.default_params().replace(swing_time=jnp.float32(0.2))
+    space = ParamSpace.from_dict({"step_length": Bound(0.005, 0.15), "step_height": Bound(0.005, 0.12),
+                                  "swing_time": Bound(0.05, 3.0)})
+    groups = {"gait": list(space.names)}
+
+u0 = space.init(p)
+spec = get_terrain("flat")
+if a.face:
+    spec = dataclasses.replace(get_terrain("step40"), height_range=(a.faceh, a.faceh), step_side="full",
+                               start_x=a.face, length=0.004, step_length_range=(0.3, 0.3))
+terr = sample(spec, jax.random.PRNGKey(0), a.B)
+keys = jax.random.split(jax.random.PRNGKey(1), a.B)
+phys = dataclasses.replace(physics_for(spec.kind), iterations=a.iters)
+model, fn = rollout_function(robot, ctrl, a.window, physics=phys,
+                             config=RolloutConfig(settle_time=a.settle, reversible_solver=True))
+
+
+def obj(u):
+    s = fn(model, space.apply(u, p), terr, keys)
+    return jnp.mean(s.travel[:, 0]) + 0.3 * jnp.mean(s.travel[:, 1]) + 0.1 * jnp.mean(s.travel[:, 2])
+
+
+t0 = time.time()
+val, g = jax.jit(jax.value_and_grad(obj))(u0)
+f = jax.jit(obj)
+print(f"{vars(a)}\nobjective {float(val):.6g} (compile + gradient {time.time() - t0:.0f} s)", flush=True)
+for eps in [float(e) for e in a.eps.split(",")]:
+    fd = {}
+    for k, v in u0.items():
+        col = np.zeros(v.size)
+        for j in range(v.size):
+            d = jnp.zeros(v.size).at[j].set(eps).reshape(v.shape)
+            col[j] = (float(f({**u0, k: v + d})) - float(f({**u0, k: v - d}))) / (2 * eps)
+        fd[k] = col
+    for group, names in groups.items():
+        ad = np.concatenate([np.ravel(np.asarray(g[n])) for n in names])
+        b = np.concatenate([fd[n] for n in names])
+        cos = float(ad @ b / (np.linalg.norm(ad) * np.linalg.norm(b) + 1e-30))
+        print(f"eps {eps:g} {group:20s} cos {cos:+.3f} |autodiff| {np.linalg.norm(ad):.3g} "
+              f"|FD| {np.linalg.norm(b):.3g}", flush=True)
