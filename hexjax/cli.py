@@ -32,6 +32,8 @@ def _cmd_evaluate(a) -> int:
 def _cmd_experiment(a) -> int:
     if a.name == "luneckas2020":
         return _cmd_luneckas(a)
+    if a.name == "zhao2018":
+        return _cmd_zhao(a)
     from hexjax.analysis.experiment import format_experiment, plot_experiment, run_experiment
     res = run_experiment(a.name, batch=a.batch, seed=a.seed, duration=a.duration, record=bool(a.png))
     c = res["config"]
@@ -42,6 +44,50 @@ def _cmd_experiment(a) -> int:
         plot_experiment(res, a.png)
         print(f"wrote {a.png}")
     res.pop("_records", None)
+    if a.json:
+        _write_json(a.json, res)
+    return 0
+
+
+def _cmd_zhao(a) -> int:
+    from hexjax.plan.fields import plot_zhao2018, zhao2018_experiment
+    res = zhao2018_experiment()
+    print(f"\nzhao2018 experiment 1: start {res['start']}, target {res['target']}, 4 obstacles (Table 1), "
+          f"d_min {res['d_min']:g} m, d_max {res['d_max']:g} m, n_T {res['n_T']}")
+    print(f"{'cycle':>5} {'direction':>9} {'planned (m)':>16} {'Table 2 (m)':>16} {'distance (m)':>12}")
+    for row in res["cycles_table"]:
+        d = row["direction_deg"]
+        d = "-" if d is None else (d if isinstance(d, str) else f"{d:.0f} deg")
+        pl = "-" if row["planned"] is None else f"({row['planned'][0]:.3f}, {row['planned'][1]:.3f})"
+        t2 = "-" if row["table2"] is None else f"({row['table2'][0]:.3f}, {row['table2'][1]:.3f})"
+        dist = "-" if row["distance"] is None else f"{row['distance']:.3f}"
+        print(f"{row['cycle']:>5} {d:>9} {pl:>16} {t2:>16} {dist:>12}")
+    print(f"reached: {res['reached']} in {res['cycles']} cycles (Table 2: {res['cycles_table2']}); smallest "
+          f"robot-obstacle clearance {100 * res['min_clearance']:.1f} cm (overlap: {res['overlap']}); distance to "
+          f"Table 2 mean {100 * res['mean_distance_to_table2']:.1f} cm, max {100 * res['max_distance_to_table2']:.1f} cm")
+    if a.png:
+        plot_zhao2018(res, a.png)
+        print(f"wrote {a.png}")
+    if a.json:
+        _write_json(a.json, res)
+    return 0
+
+
+def _cmd_plan(a) -> int:
+    import jax
+
+    from hexjax.plan.fields import plan_batch, random_fields
+    if a.random < 1:
+        raise ValueError(f"--random={a.random!r}: plan at least 1 field")
+    fields = random_fields(jax.random.PRNGKey(a.seed), a.random, n_obstacles=a.obstacles)
+    res, _ = plan_batch(fields)
+    res["seed"] = a.seed
+    print(f"{res['fields']} fields (seed {a.seed}, {res['obstacles_per_field']:.1f} obstacles each, every one with a "
+          f"free lane): success {100 * res['success_rate']:.1f} %, collisions {res['collisions']}, stuck "
+          f"{res['stuck_fields']}, min clearance {100 * res['min_clearance']['min']:.1f} cm, path / straight line "
+          f"{res['path_ratio']['mean']:.3f} (p95 {res['path_ratio']['p95']:.3f}), "
+          f"{res['us_per_cycle_per_field']:.2f} us per plan cycle per field on {res['device']} "
+          f"({res['wall_s']:.3f} s for {res['max_cycles']} cycles of all fields; compile {res['compile_s']:.1f} s)")
     if a.json:
         _write_json(a.json, res)
     return 0
@@ -190,8 +236,9 @@ def main(argv=None) -> int:
     e.add_argument("--json", default="", help="write the numbers here")
     e.set_defaults(fn=_cmd_evaluate)
 
-    x = sub.add_parser("experiment", help="paper experiments: luneckas2020 (seed 000 matrix), yu2019-step, yu2019-ditch")
-    x.add_argument("name", choices=["luneckas2020", "yu2019-step", "yu2019-ditch"])
+    x = sub.add_parser("experiment", help="paper experiments: luneckas2020 (seed 000 matrix), yu2019-step, yu2019-ditch, "
+                                          "zhao2018 (seed 004 experiment 1, avoidance planner)")
+    x.add_argument("name", choices=["luneckas2020", "yu2019-step", "yu2019-ditch", "zhao2018"])
     x.add_argument("--batch", "--n", dest="batch", type=int, default=16,
                    help="randomised terrains per row / cell (default 16)")
     x.add_argument("--gaits", default="", help="luneckas2020: comma list of wave,tripod (default both)")
@@ -245,6 +292,14 @@ def main(argv=None) -> int:
     tu.add_argument("--time-limit", type=float, default=None, help="s of wall time per method (stops at a step boundary)")
     tu.add_argument("--restart", action="store_true", help="ignore an existing checkpoint")
     tu.set_defaults(fn=_cmd_tune)
+
+    pl = sub.add_parser("plan", help="Zhao 2018 avoidance planner over random obstacle fields, in one batched call")
+    pl.add_argument("--random", type=int, default=1000, help="fields (default 1000)")
+    pl.add_argument("--seed", type=int, default=0)
+    pl.add_argument("--obstacles", type=int, default=16, help="obstacle circles drawn per field before the lane is "
+                                                               "cleared (default 16)")
+    pl.add_argument("--json", default="", help="write the numbers here")
+    pl.set_defaults(fn=_cmd_plan)
 
     t = sub.add_parser("terrain", help="draw a sampled terrain")
     t.add_argument("--preset", default="high-large")

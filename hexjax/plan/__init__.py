@@ -1,0 +1,1 @@
+"""Planners of the papers, in pure JAX: obstacle avoidance by direction selection (Zhao 2018, `avoid`)."""

@@ -1,0 +1,190 @@
+"""Support planning of Chen et al. 2019 (seed 002), Sect. 2.2: the centre of the largest circle inside the
+support polygon, found by the paper's iteration (Steps 1-5, Eqs. 1-2) and, beside it, exactly.
+
+Polygons are convex, counter-clockwise, as (..., K, 2) vertices with a (..., K) `valid` mask (the valid
+vertices first), so triangles and quadrilaterals share one shape and `vmap`.
+
+* `incenter_iterative`: Step 1 starts at the midpoint of two non-adjacent vertices (vertices 0 and 2); a
+  triangle has no such pair (the midpoint of two of its vertices lies on a side, where the iteration
+  cannot move: C = S), so a triangle starts at its centroid.
+  Step 2 finds the two sides nearest to the point S (feet A, B, distances L_A <= L_B). Step 3 takes C = A
+  when A, B, S are collinear, else C on AB by Eq. 1. Step 4 moves S' = S + a (S - C) / |S - C| (Eq. 2).
+  Step 5 keeps S' if its nearest-side distance grew, else halves a. The paper gives no start value of a
+  and no stopping rule: a starts at a quarter of the polygon's smallest bounding-box side, and the loop
+  runs a fixed `iterations` times (a `lax.scan`, so a batch shares one program); by then a has shrunk
+  below float32 resolution for any polygon that keeps halving.
+* `incenter_exact`: the Chebyshev centre. The largest inscribed circle touches at least three sides (or two
+  parallel ones): it is the best feasible solution of the 3 x 3 systems n_i . x + r = b_i over every
+  triple of sides (a vertex of the LP max r s.t. n_i . x + r <= b_i). K <= 8 sides make at most 56 triples.
+  For triangles this is the classical incenter (weights = side lengths), which the tests check.
+"""
+
+from __future__ import annotations
+
+import itertools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+
+def _sides(poly, valid):
+    """Side i runs from vertex i to the next valid vertex: start (K, 2), end (K, 2), side valid (K,)."""
+    k = poly.shape[-2]
+    n = jnp.sum(valid)
+    nxt = jnp.where(jnp.arange(k) + 1 < n, jnp.arange(k) + 1, 0)
+    return poly, poly[nxt], valid
+
+
+def _side_geometry(poly, valid):
+    """Inward unit normals (K, 2) and offsets (K,): inside means n . x <= b for a CCW polygon."""
+    a, b, ok = _sides(poly, valid)
+    d = b - a
+    length = jnp.linalg.norm(d, axis=-1)
+    normal = jnp.stack([d[:, 1], -d[:, 0]], -1) / jnp.maximum(length, 1e-12)[:, None]  # outward for CCW
+    return normal, jnp.sum(normal * a, -1), ok & (length > 1e-9)
+
+
+def side_distances(point, poly, valid):
+    """(K,) signed distance from point to each side's line (> 0 inside a convex CCW polygon, inf for invalid
+    sides) and (K, 2) the feet of the perpendiculars. Inside a convex polygon the smallest is the distance
+    to the boundary; outside it is negative, so a step that leaves the polygon never counts as a gain."""
+    normal, off, ok = _side_geometry(poly, valid)
+    d = off - normal @ point
+    foot = point + d[:, None] * normal
+    return jnp.where(ok, d, jnp.inf), foot
+
+
+def incenter_iterative(poly, valid, iterations: int = 60, collinear_tol: float = 1e-9):
+    """Chen 2019 Steps 1-5 (module notes): (centre (2,), radius ()) for one polygon (K, 2), valid (K,)."""
+    poly = jnp.asarray(poly, jnp.float32)
+    n = jnp.sum(valid)
+    centroid = jnp.sum(jnp.where(valid[:, None], poly, 0.0), 0) / jnp.maximum(n, 1)
+    # Step 1: midpoint of two non-adjacent vertices; a triangle has none (that midpoint lies on a side),
+    # so a triangle starts at its centroid
+    s0 = jnp.where(n > 3, 0.5 * (poly[0] + poly[2]), centroid)
+    span = jnp.where(valid[:, None], poly, poly[0]).max(0) - jnp.where(valid[:, None], poly, poly[0]).min(0)
+    a0 = 0.25 * jnp.min(span)
+
+    def nearest(s):
+        d, foot = side_distances(s, poly, valid)
+        i = jnp.argsort(d)[:2]
+        return d[i[0]], foot[i[0]], d[i[1]], foot[i[1]]
+
+    def body(carry, _):
+        s, step = carry
+        la, pa, lb, pb = nearest(s)  # Step 2
+        la, lb = jnp.abs(la), jnp.abs(lb)
+        cross = (pa[0] - s[0]) * (pb[1] - s[1]) - (pa[1] - s[1]) * (pb[0] - s[0])
+        collinear = jnp.abs(cross) <= collinear_tol * jnp.maximum(1.0, la * lb)
+        c = jnp.where(collinear, pa, pa + la / jnp.maximum(la + lb, 1e-12) * (pb - pa))  # Step 3, Eq. 1
+        away = s - c
+        norm = jnp.linalg.norm(away)
+        s_new = s + step * away / jnp.maximum(norm, 1e-12)  # Step 4, Eq. 2
+        l_new = jnp.min(side_distances(s_new, poly, valid)[0])
+        better = (l_new > la) & (norm > 0)
+        # Step 5: keep S' when its distance to the nearest side grew, else halve the step and retry from S
+        return (jnp.where(better, s_new, s), jnp.where(better, step, 0.5 * step)), None
+
+    (s, _), _ = jax.lax.scan(body, (s0, a0), None, length=iterations)
+    return s, jnp.min(side_distances(s, poly, valid)[0])
+
+
+_TRIPLES = {}
+
+
+def _triples(k: int) -> np.ndarray:
+    if k not in _TRIPLES:
+        _TRIPLES[k] = np.array(list(itertools.combinations(range(k), 3)), np.int32)
+    return _TRIPLES[k]
+
+
+def incenter_exact(poly, valid):
+    """Chebyshev centre of a convex CCW polygon (K, 2), valid (K,): (centre (2,), radius ()) (module notes)."""
+    poly = jnp.asarray(poly, jnp.float32)
+    normal, off, ok = _side_geometry(poly, valid)
+    tri = _triples(poly.shape[-2])
+    m = jnp.concatenate([normal[tri], jnp.ones(tri.shape + (1,))], -1)  # (T, 3, 3): n . x + r = b
+    rhs = off[tri]
+    det = jnp.linalg.det(m)
+    good = ok[tri].all(-1) & (jnp.abs(det) > 1e-9)
+    sol = jnp.linalg.solve(jnp.where(good[:, None, None], m, jnp.eye(3)), jnp.where(good[:, None], rhs, 0.0)[..., None])[..., 0]
+    x, r = sol[:, :2], sol[:, 2]
+    slack = off[None, :] - x @ normal.T - r[:, None]  # >= 0 where every side is respected
+    scale = jnp.max(jnp.abs(jnp.where(valid[:, None], poly, 0.0))) + 1.0
+    feasible = good & jnp.all(jnp.where(ok[None, :], slack >= -1e-5 * scale, True), -1) & (r > 0)
+    best = jnp.argmax(jnp.where(feasible, r, -jnp.inf))
+    return x[best], jnp.where(feasible[best], r[best], 0.0)
+
+
+def check_polygons(poly, valid) -> None:
+    """Host-side checks before a batch is traced: at least 3 valid vertices, valid ones first, finite, convex
+    and counter-clockwise with positive area; names the first bad polygon's index."""
+    p, v = np.asarray(poly, float), np.asarray(valid, bool)
+    if p.shape[-1] != 2 or v.shape != p.shape[:-1] or p.shape[-2] < 3:
+        raise ValueError(f"polygons {p.shape}, valid {v.shape}: need (..., K >= 3, 2) vertices and (..., K) valid")
+    p2, v2 = p.reshape(-1, p.shape[-2], 2), v.reshape(-1, v.shape[-1])
+    n = v2.sum(-1)
+    for i in range(len(p2)):
+        k = int(n[i])
+        if k < 3 or not v2[i, :k].all():
+            raise ValueError(f"polygon {i}: needs >= 3 valid vertices, listed first (valid={v2[i].tolist()})")
+        q = p2[i, :k]
+        if not np.all(np.isfinite(q)):
+            raise ValueError(f"polygon {i}: vertices must be finite")
+        e = np.roll(q, -1, 0) - q
+        cross = e[:, 0] * np.roll(e, -1, 0)[:, 1] - e[:, 1] * np.roll(e, -1, 0)[:, 0]
+        area = 0.5 * np.sum(q[:, 0] * np.roll(q, -1, 0)[:, 1] - np.roll(q, -1, 0)[:, 0] * q[:, 1])
+        if area <= 1e-12 * max(1.0, np.abs(q).max() ** 2):
+            raise ValueError(f"polygon {i}: collinear or clockwise footholds (signed area {area:.3g}); the support "
+                             f"polygon has no interior")
+        if np.any(cross < -1e-9 * max(1.0, np.abs(q).max() ** 2)):
+            raise ValueError(f"polygon {i}: not convex")
+
+
+def random_polygons(key, n: int, k: int, k_max: int | None = None, min_gap: float = 0.25, stretch: float = 3.0):
+    """n random convex CCW polygons with k vertices, padded to k_max by repeating vertex 0 (invalid): affine
+    images of polygons inscribed in the unit circle. Consecutive vertices are at least `min_gap` x 2 pi / k
+    apart in angle (no vanishing sides), and the affine map rotates, stretches by up to `stretch`:1 and
+    rotates again (any convex polygon's shape class, without slivers). Returns (poly (n, k_max, 2),
+    valid (n, k_max))."""
+    k_max = k_max or k
+    ks = jax.random.split(key, 5)
+    gaps = jax.random.dirichlet(ks[0], jnp.ones(k), (n,)) * (1.0 - min_gap) + min_gap / k
+    ang = jax.random.uniform(ks[1], (n, 1), maxval=2 * jnp.pi) + 2 * jnp.pi * jnp.cumsum(gaps, -1)
+    pts = jnp.stack([jnp.cos(ang), jnp.sin(ang)], -1)
+
+    def rot(t):
+        c, s_ = jnp.cos(t), jnp.sin(t)
+        return jnp.stack([jnp.stack([c, -s_], -1), jnp.stack([s_, c], -1)], -2)
+
+    t1, t2 = (jax.random.uniform(kk, (n,), maxval=2 * jnp.pi) for kk in ks[2:4])
+    sx = jax.random.uniform(ks[4], (n,), minval=1.0, maxval=stretch)
+    m = rot(t2) @ (jnp.eye(2) * jnp.stack([sx, jnp.ones(n)], -1)[:, None, :]) @ rot(t1)
+    poly = jnp.einsum("nij,nkj->nki", m, pts)
+    pad = jnp.broadcast_to(poly[:, :1], (n, k_max - k, 2))
+    valid = jnp.broadcast_to(jnp.arange(k_max) < k, (n, k_max))
+    return jnp.concatenate([poly, pad], 1), valid
+
+
+def incenter_study(key, n: int = 100_000, sides=(3, 4, 5, 6), iterations: int = 60) -> dict:
+    """The iterative incenter's error against the exact one over n random polygons per side count:
+    relative radius shortfall (r_exact - r_iter) / r_exact and centre offset / r_exact, as percentiles."""
+    out = {"n_per_sides": n, "iterations": iterations, "by_sides": {}}
+    k_max = max(sides)
+    it = jax.jit(jax.vmap(lambda p, v: incenter_iterative(p, v, iterations)))
+    ex = jax.jit(jax.vmap(incenter_exact))
+    for j, k in enumerate(sides):
+        poly, valid = random_polygons(jax.random.fold_in(key, j), n, k, k_max)
+        ci, ri = it(poly, valid)
+        ce, re = ex(poly, valid)
+        rel = np.asarray((re - ri) / re)
+        off = np.asarray(jnp.linalg.norm(ci - ce, axis=-1) / re)
+        q = [50, 90, 99, 99.9, 100]
+        out["by_sides"][str(k)] = {
+            "radius_shortfall": {f"p{x:g}": float(np.percentile(rel, x)) for x in q},
+            "centre_offset": {f"p{x:g}": float(np.percentile(off, x)) for x in q},
+            "iterative_exceeds_exact": int(np.sum(rel < -1e-4)),
+            "within_1e-3": float(np.mean(rel <= 1e-3)),
+        }
+    return out

@@ -1,0 +1,111 @@
+"""Issue 6, part 1: the Zhao 2018 (seed 004) avoidance planner: Eqs. 1, 3, 5, 6; experiment 1 against
+Table 2; batched random fields with a free lane by construction; degenerate inputs."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from hexjax.plan.avoid import (AvoidConfig, capacity_line, clearance, fan, octopus_params, penalty, plan,
+                               scores)
+from hexjax.plan.fields import TABLE2, _dist_to_polyline, plan_batch, random_fields, zhao2018_experiment
+
+
+def test_penalty_is_eq5():
+    d_min, d_max = 0.05, 0.2
+    d = jnp.array([-1.0, 0.0, 0.05, 0.0501, 0.1, 0.125, 0.15, 0.1999, 0.2, 3.0])
+    c = np.asarray(penalty(d, d_min, d_max))
+    assert c[0] == c[1] == c[2] == 1.0 and c[-1] == c[-2] == 0.0  # the two outer branches, ends included
+    assert c[3] > 0.999 and c[-3] < 0.001  # continuous at both ends
+    assert np.all(np.diff(c) <= 0)  # falls monotonically from d_min to d_max
+    mid = 0.5 * (1 + np.tanh(1 / (0.1 - d_min) + 1 / (0.1 - d_max)))
+    assert c[4] == pytest.approx(mid, rel=1e-6)
+    assert c[5] == pytest.approx(0.5, abs=1e-6)  # symmetric: 1/(d - d_min) + 1/(d - d_max) = 0 mid-way
+
+
+def test_clearance_is_eq1():
+    p = octopus_params().replace(robot_offsets=jnp.array([[0.0, 0.5], [0.0, -0.5]]), robot_radii=jnp.array([0.3, 0.2]))
+    centres = jnp.array([[3.0, 0.5], [0.0, -2.0]])
+    radii = jnp.array([0.4, 0.1])
+    d = np.asarray(clearance(jnp.array([0.0, 0.0]), p, centres, radii, jnp.array([True, False])))
+    assert d[0, 0] == pytest.approx(3.0 - 0.3 - 0.4, abs=1e-6)
+    assert d[1, 0] == pytest.approx(np.hypot(3.0, 1.0) - 0.2 - 0.4, abs=1e-6)
+    assert np.all(np.isinf(d[:, 1]))  # an invalid obstacle never counts
+
+
+def test_capacity_reading_reproduces_table2_cycle_lengths():
+    """The |w| line read from Table 2 gives its cycle lengths (0.75 m x |w|) at the angles it used."""
+    lengths = 0.75 * np.asarray(capacity_line(np.radians([90.0, 75.0, 105.0, 60.0, 135.0, 85.5])))
+    steps = np.linalg.norm(np.diff(np.vstack([[0, 0], TABLE2]), axis=0), axis=1)
+    # cycles 6, 4, 2, 5, 1, 3 of Table 2 walked at 90, 75, 105, 60, 135 and the target direction (85.5 deg)
+    assert lengths == pytest.approx(steps[[5, 3, 1, 4, 0, 2]], abs=2e-3)
+    assert len(fan()) == 36 and np.degrees(fan())[-1] == pytest.approx(175.0)
+
+
+def test_scores_prefer_the_target_and_avoid_obstacles():
+    p, cfg = octopus_params(), AvoidConfig()
+    free = scores(jnp.zeros(2), jnp.array([0.0, 8.0]), p, cfg, jnp.zeros((1, 2)) + 50.0, jnp.ones(1), jnp.ones(1, bool))
+    f = np.asarray(free[0])
+    assert np.argmin(f) in (18, 36)  # 90 deg or the target direction: both point at (0, 8)
+    assert f[36] == pytest.approx(1 / (1 + 1.0), abs=1e-6)  # Eq. 3 with u_i = u_T, |w| = 1, no penalty
+    # an obstacle straight ahead makes every candidate that walks into it worse than a sidestep
+    blocked = scores(jnp.zeros(2), jnp.array([0.0, 8.0]), p, cfg, jnp.array([[0.0, 1.2]]), jnp.array([0.3]),
+                     jnp.ones(1, bool))
+    fb = np.asarray(blocked[0])
+    assert fb[18] > fb[np.argmin(fb)] and np.argmin(fb) not in (18, 36)
+    assert bool(np.asarray(blocked[3])[18])  # walking straight on would overlap the obstacle
+
+
+def test_experiment1_reaches_the_target_without_overlap():
+    """Acceptance: experiment 1 of seed 004 reaches (0, 8) with no circle overlap at any step (checked at
+    8 points per time-step), in Table 2's 13 plan cycles, every cycle within 0.2 m of Table 2."""
+    r = zhao2018_experiment()
+    assert r["reached"] and not r["overlap"]
+    assert r["min_clearance"] > r["d_min"]
+    assert r["cycles"] == 13
+    assert r["max_distance_to_table2"] < 0.2 and r["mean_distance_to_table2"] < 0.1
+    end = np.asarray(r["path"][-1])
+    assert np.linalg.norm(end - np.array([0.0, 8.0])) <= 0.1
+
+
+def test_random_fields_batch_plans_every_field_safely():
+    fields = random_fields(jax.random.PRNGKey(3), 256, n_obstacles=24)
+    # the lane is free by construction: every kept obstacle clears it by the lane's half-width
+    d = np.asarray(_dist_to_polyline(fields.centres, fields.lane))
+    v = np.asarray(fields.valid)
+    assert np.all(d[v] > 1.0 + np.asarray(fields.radii)[v])
+    assert v.sum(1).min() >= 1
+    res, out = plan_batch(fields, repeats=1)
+    assert res["collisions"] == 0 and res["min_clearance"]["min"] > 0
+    assert res["success_rate"] >= 0.95
+    # the batched call plans each field as a single call would
+    p, cfg = octopus_params(), AvoidConfig()
+    for i in (0, 7, 100):
+        one = plan(fields.start[i], fields.target[i], fields.centres[i], fields.radii[i], fields.valid[i], p, cfg)
+        np.testing.assert_allclose(np.asarray(one.path), np.asarray(out.path[i]), atol=1e-5)
+
+
+def test_degenerate_inputs():
+    c, r, v = np.array([[0.0, 8.0]]), np.array([0.3]), np.array([True])
+    p = octopus_params()
+    with pytest.raises(ValueError, match="target inside an obstacle in field"):
+        plan_batch(random_fields(jax.random.PRNGKey(0), 2).replace(centres=jnp.zeros((2, 1, 2)) + jnp.array([0.0, 8.0]),
+                                                                   radii=jnp.ones((2, 1)) * 0.3,
+                                                                   valid=jnp.ones((2, 1), bool),
+                                                                   target=jnp.array([[0.0, 8.0], [0.0, 8.0]])))
+    from hexjax.plan.avoid import check_inputs
+    with pytest.raises(ValueError, match="at least one candidate direction"):
+        check_inputs([0, 0], [0, 5], c, r, v, p.replace(angles=jnp.zeros(0), capacity=jnp.zeros(0)), AvoidConfig())
+    with pytest.raises(ValueError, match=r"d_min=0.2, d_max=0.2"):
+        check_inputs([0, 0], [0, 5], c, r, v, p.replace(d_min=jnp.float32(0.2)), AvoidConfig())
+    with pytest.raises(ValueError, match="n_T=0"):
+        check_inputs([0, 0], [0, 5], c, r, v, p, AvoidConfig(n_T=0))
+    # start at the target: reached with no plan cycle; boxed in on every side: holds, counted stuck
+    at = plan(jnp.zeros(2), jnp.zeros(2), jnp.array([[5.0, 5.0]]), jnp.array([0.3]), jnp.ones(1, bool), p)
+    assert bool(at.reached) and int(at.cycles) == 0 and float(at.length) == 0.0
+    ring = 1.2 * np.stack([np.cos(np.linspace(0, 2 * np.pi, 24, endpoint=False)),
+                           np.sin(np.linspace(0, 2 * np.pi, 24, endpoint=False))], -1)
+    boxed = plan(jnp.zeros(2), jnp.array([0.0, 8.0]), jnp.asarray(ring), jnp.full(24, 0.35), jnp.ones(24, bool), p,
+                 AvoidConfig(max_cycles=4))
+    assert not bool(boxed.reached) and int(boxed.stuck) == 4 and float(boxed.length) == 0.0
+    assert float(boxed.min_clearance) == pytest.approx(1.2 - 0.1 - 0.6 - 0.35, abs=1e-5)  # it never moved
