@@ -77,6 +77,8 @@ def _cmd_plan(a) -> int:
     import jax
 
     from hexjax.plan.fields import plan_batch, random_fields
+    if a.incenter:
+        return _cmd_incenter(a)
     if a.random < 1:
         raise ValueError(f"--random={a.random!r}: plan at least 1 field")
     fields = random_fields(jax.random.PRNGKey(a.seed), a.random, n_obstacles=a.obstacles)
@@ -88,6 +90,30 @@ def _cmd_plan(a) -> int:
           f"{res['path_ratio']['mean']:.3f} (p95 {res['path_ratio']['p95']:.3f}), "
           f"{res['us_per_cycle_per_field']:.2f} us per plan cycle per field on {res['device']} "
           f"({res['wall_s']:.3f} s for {res['max_cycles']} cycles of all fields; compile {res['compile_s']:.1f} s)")
+    if a.json:
+        _write_json(a.json, res)
+    return 0
+
+
+def _cmd_incenter(a) -> int:
+    import time
+
+    import jax
+
+    from hexjax.plan.support import incenter_study
+    if a.incenter < 1:
+        raise ValueError(f"--incenter={a.incenter!r}: study at least 1 polygon per side count")
+    t0 = time.perf_counter()
+    res = incenter_study(jax.random.PRNGKey(a.seed), a.incenter)
+    res["seed"], res["wall_s"] = a.seed, time.perf_counter() - t0
+    print(f"Chen 2019 iterative incenter (Steps 1-5, {res['iterations']} iterations) against the exact one, "
+          f"{a.incenter} random convex polygons per side count (seed {a.seed}):")
+    print(f"{'sides':>5} {'radius shortfall p50':>21} {'p99':>9} {'p99.9':>9} {'max':>9} {'within 1e-3':>12} "
+          f"{'centre offset p99 / r':>22}")
+    for k, d in res["by_sides"].items():
+        r, c = d["radius_shortfall"], d["centre_offset"]
+        print(f"{k:>5} {r['p50']:>21.2e} {r['p99']:>9.2e} {r['p99.9']:>9.2e} {r['p100']:>9.2e} "
+              f"{100 * d['within_1e-3']:>11.2f}% {c['p99']:>22.2e}")
     if a.json:
         _write_json(a.json, res)
     return 0
@@ -293,11 +319,15 @@ def main(argv=None) -> int:
     tu.add_argument("--restart", action="store_true", help="ignore an existing checkpoint")
     tu.set_defaults(fn=_cmd_tune)
 
-    pl = sub.add_parser("plan", help="Zhao 2018 avoidance planner over random obstacle fields, in one batched call")
+    pl = sub.add_parser("plan", help="Zhao 2018 avoidance planner over random obstacle fields, in one batched call "
+                                     "(or, with --incenter, the Chen 2019 incenter study)")
     pl.add_argument("--random", type=int, default=1000, help="fields (default 1000)")
     pl.add_argument("--seed", type=int, default=0)
     pl.add_argument("--obstacles", type=int, default=16, help="obstacle circles drawn per field before the lane is "
                                                                "cleared (default 16)")
+    pl.add_argument("--incenter", type=int, default=0, metavar="N",
+                    help="instead: the Chen 2019 iterative incenter against the exact one on N random convex "
+                         "polygons of each of 3-6 sides")
     pl.add_argument("--json", default="", help="write the numbers here")
     pl.set_defaults(fn=_cmd_plan)
 
