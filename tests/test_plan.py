@@ -152,3 +152,95 @@ def test_support_polygon_checks():
         check_polygons(np.concatenate([ok, ok]), np.array([[1, 1, 1], [1, 1, 0]], bool))
     with pytest.raises(ValueError, match="not convex"):
         check_polygons(np.array([[[0.0, 0.0], [2.0, 0.0], [0.5, 0.5], [0.0, 2.0]]]), np.ones((1, 4), bool))
+
+
+def test_clamped_spline_is_eqs4_5():
+    from scipy.interpolate import CubicSpline
+
+    from hexjax.plan.support import clamped_spline
+    t = np.array([0.0, 0.3, 0.7, 1.2, 2.0])
+    y = np.random.default_rng(0).normal(size=(5, 3))  # three joints' path points
+    s = clamped_spline(t, y)
+    tq = np.linspace(0.0, 2.0, 81)
+    np.testing.assert_allclose(np.asarray(s(jnp.asarray(tq))), CubicSpline(t, y, bc_type="clamped")(tq), atol=2e-6)
+    np.testing.assert_allclose(np.asarray(s(jnp.asarray(t))), y, atol=1e-6)  # through every path point
+    v = (np.asarray(s(jnp.array([1e-3, 2.0]))) - np.asarray(s(jnp.array([0.0, 2.0 - 1e-3])))) / 1e-3
+    assert np.abs(v).max() < 0.05  # S'(t_1) = S'(t_N) = 0 (Eq. 5), up to the O(h) of the difference
+
+
+def test_torso_target_follows_the_foothold_plane_and_eq3():
+    from hexjax.plan.support import torso_pitch_roll, torso_target
+    # a rectangle of four footholds on a plane rising 0.1 forward (x) and 0.05 to the left (y)
+    xy = np.array([[-0.2, -0.15], [0.2, -0.15], [0.2, 0.15], [-0.2, 0.15]])
+    z = 0.1 * xy[:, 0] + 0.05 * xy[:, 1] + 0.03
+    f = jnp.asarray(np.c_[xy, z])
+    out = torso_target(f, jnp.ones(4, bool), 0.0, 0.17, measured_pitch=0.0, measured_roll=0.2, iterative=False)
+    assert float(out["margin"]) == pytest.approx(0.15, abs=1e-6)
+    x, y, zc = np.asarray(out["xyz"])
+    assert abs(y) < 1e-6 and abs(x) <= 0.05 + 1e-6  # a 0.4 x 0.3 rectangle's centres: a segment on y = 0
+    assert zc == pytest.approx(0.1 * x + 0.05 * y + 0.03 + 0.17, abs=1e-5)  # h above the plane at the incenter
+    assert float(out["pitch"]) == pytest.approx(0.5 * np.arctan(0.1), abs=1e-6)  # Eq. 3
+    assert float(out["roll"]) == pytest.approx(0.5 * (np.arctan(0.05) + 0.2), abs=1e-6)
+    # facing +y instead, the forward rise is the y gradient and the left rise is minus the x gradient
+    turned = torso_target(f, jnp.ones(4, bool), np.pi / 2, 0.17, 0.0, 0.0, iterative=False)
+    assert float(turned["pitch"]) == pytest.approx(0.5 * np.arctan(0.05), abs=1e-6)
+    assert float(turned["roll"]) == pytest.approx(-0.5 * np.arctan(0.1), abs=1e-6)
+    # the measured pose in the same convention: nose up 0.2 rad (about -y), left side up 0.3 rad (about +x)
+    q_pitch = jnp.array([np.cos(-0.1), 0.0, np.sin(-0.1), 0.0])
+    q_roll = jnp.array([np.cos(0.15), np.sin(0.15), 0.0, 0.0])
+    assert np.allclose(np.asarray(torso_pitch_roll(q_pitch)), [0.2, 0.0], atol=1e-6)
+    assert np.allclose(np.asarray(torso_pitch_roll(q_roll)), [0.0, 0.3], atol=1e-6)
+
+
+def _neutral_feet(robot):
+    from hexjax.robot import hip_positions, mount_yaws
+    yaw = mount_yaws(robot)
+    return hip_positions(robot)[:, :2] + robot.stance_radial * np.stack([np.cos(yaw), np.sin(yaw)], -1)
+
+
+@pytest.mark.parametrize("alpha", [0.0, np.pi / 2, 2.5])
+def test_tripod_motion_planner_keeps_margin_and_reach(alpha):
+    """Zhao 2018 Eqs. 7-18 on the luneckas2020 robot, six tripod steps along alpha: every body target keeps
+    delta_s inside its support triangle and every foot inside its workspace; the body moves along alpha
+    (Eq. 8), and one candidate further would break a constraint (Eq. 7: the farthest valid move)."""
+    from hexjax.plan.motion import TRIPODS, body_move, edge_margins, footholds, motion_params_for
+    from hexjax.robot import luneckas2020
+    robot = luneckas2020()
+    p = motion_params_for(robot)
+    feet = jnp.asarray(_neutral_feet(robot), jnp.float32)
+    body = jnp.zeros(2)
+    u = np.array([np.cos(alpha), np.sin(alpha)])
+    total = 0.0
+    for k in range(6):
+        sup, sw = TRIPODS[k % 2], TRIPODS[1 - k % 2]
+        target, d, ok = body_move(body, 0.0, alpha, feet[sup], jnp.asarray(sup), p, n=64)
+        assert bool(ok) and float(d) > 0
+        assert np.allclose(np.asarray(target - body), float(d) * u, atol=1e-5)  # Eq. 8
+        assert float(jnp.min(edge_margins(target, feet[sup]))) > float(p.delta_s)  # Eq. 9
+        step = float(p.max_step) / 63
+        beyond = body + (float(d) + step) * jnp.asarray(u)
+        hips = beyond + p.hips[sup]
+        dist = np.linalg.norm(np.asarray(feet[sup] - hips), axis=-1)
+        broken = (float(jnp.min(edge_margins(beyond, feet[sup]))) <= float(p.delta_s)
+                  or np.any(dist < float(p.w_min)) or np.any(dist > float(p.w_max)) or float(d) + step > float(p.max_step))
+        assert broken  # Eq. 7: the next candidate is invalid
+        new, stride, ok_f = footholds(target, 0.0, alpha, feet[sw], jnp.asarray(sw), p)
+        assert bool(ok_f)
+        moved = np.asarray(new - feet[sw])
+        assert np.allclose(np.cross(moved, u), 0.0, atol=1e-5) and np.all(moved @ u >= -1e-6)  # Eq. 14
+        assert float(jnp.min(edge_margins(target, new))) > float(p.delta_s)  # Eq. 15
+        dist = np.linalg.norm(np.asarray(new - (target + p.hips[sw])), axis=-1)
+        assert np.all(dist >= float(p.w_min)) and np.all(dist <= float(p.w_max))  # Eqs. 16-18
+        feet = feet.at[sw].set(new)
+        total += float(d)
+        body = target
+    assert total > 0.2  # six steps walk on (CPU figures: 0.28-0.70 m for these directions)
+
+
+def test_semi_ellipse_swing():
+    from hexjax.plan.motion import swing_path
+    a, b = jnp.array([0.0, 0.0, 0.0]), jnp.array([0.1, 0.02, 0.01])
+    path = np.asarray(swing_path(a, b, 0.05, jnp.linspace(0.0, 1.0, 101)))
+    assert np.allclose(path[0], a) and np.allclose(path[-1], b, atol=1e-6)
+    assert path[50, 2] == pytest.approx(0.005 + 0.05, abs=1e-6)  # apex above the chord's midpoint
+    assert np.all(path[1:-1, 2] > np.linspace(0, 0.01, 101)[1:-1] - 1e-9)  # never below the chord

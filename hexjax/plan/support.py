@@ -188,3 +188,75 @@ def incenter_study(key, n: int = 100_000, sides=(3, 4, 5, 6), iterations: int = 
             "within_1e-3": float(np.mean(rel <= 1e-3)),
         }
     return out
+
+
+# Torso target and joint trajectories (Chen 2019 Sects. 2.2.1-2.2.2) -----------------------------------------
+def foothold_plane(footholds, valid):
+    """Least-squares plane z = g_x x + g_y y + c through the valid footholds (K, 3): (g_x, g_y, c)."""
+    w = valid.astype(footholds.dtype)
+    a = jnp.stack([footholds[:, 0], footholds[:, 1], jnp.ones_like(footholds[:, 0])], -1) * w[:, None]
+    # a small ridge keeps 3 collinear footholds solvable (their check is `check_polygons`)
+    return jnp.linalg.solve(a.T @ a + 1e-9 * jnp.eye(3), a.T @ (footholds[:, 2] * w))
+
+
+def plane_pitch_roll(gradient, yaw):
+    """Pitch and roll (rad) of a plane with gradient (g_x, g_y) for a torso heading `yaw`: pitch > 0 when the
+    plane rises ahead (nose up), roll > 0 when it rises to the left."""
+    fwd = jnp.array([jnp.cos(yaw), jnp.sin(yaw)])
+    left = jnp.array([-jnp.sin(yaw), jnp.cos(yaw)])
+    return jnp.arctan(gradient @ fwd), jnp.arctan(gradient @ left)
+
+
+def torso_pitch_roll(quat, yaw=None):
+    """Pitch and roll (rad) of a torso quaternion (w, x, y, z) in the convention of `plane_pitch_roll`: the
+    rise of its forward (x) and left (y) axes."""
+    w, x, y, z = quat[0], quat[1], quat[2], quat[3]
+    fwd_z = 2.0 * (x * z - w * y)  # z component of the rotated x axis
+    left_z = 2.0 * (y * z + w * x)  # z component of the rotated y axis
+    return jnp.arcsin(jnp.clip(fwd_z, -1, 1)), jnp.arcsin(jnp.clip(left_z, -1, 1))
+
+
+def torso_target(footholds, valid, yaw, height, measured_pitch, measured_roll, iterative: bool = True):
+    """The torso's target state for the next support phase (Chen 2019 Sect. 2.2): horizontal position at the
+    incenter of the support polygon (iterative Steps 1-5, or exact), height `height` above the fitted
+    foothold plane there (Sect. 2.2.1), and pitch / roll by Eq. 3, the mean of the foothold plane's and the
+    measured ones. footholds (K, 3) m, CCW in xy; valid (K,). Returns dict of xyz (3,), pitch, roll, yaw,
+    and the stability margin (the inscribed radius, m)."""
+    xy, valid_ = footholds[:, :2], valid
+    c, r = (incenter_iterative if iterative else incenter_exact)(xy, valid_)
+    g = foothold_plane(footholds, valid)
+    z = g[0] * c[0] + g[1] * c[1] + g[2] + height
+    p_sp, r_sp = plane_pitch_roll(g[:2], yaw)
+    return {"xyz": jnp.concatenate([c, z[None]]), "pitch": 0.5 * (p_sp + measured_pitch),
+            "roll": 0.5 * (r_sp + measured_roll), "yaw": jnp.asarray(yaw), "margin": r}
+
+
+def clamped_spline(t, y):
+    """Cubic spline through knots (t (N,), y (N, ...)) with zero velocity at both ends (Chen 2019 Eqs. 4-5):
+    C2 at the interior knots, S'(t_1) = S'(t_N) = 0. Returns a function of query times (M,) -> (M, ...).
+    Solves the N x N tridiagonal system for the knot slopes densely (N is a handful of path points)."""
+    t = jnp.asarray(t)
+    y = jnp.asarray(y)
+    n = t.shape[0]
+    h = jnp.diff(t)
+    flat = y.reshape(n, -1)
+    dy = jnp.diff(flat, axis=0) / h[:, None]
+    # unknowns: slopes m_i. Interior rows: h_i m_{i-1} + 2 (h_{i-1} + h_i) m_i + h_{i-1} m_{i+1}
+    #   = 3 (h_i dy_{i-1} + h_{i-1} dy_i)  (second-derivative continuity); end rows: m_1 = m_N = 0 (Eq. 5)
+    i = jnp.arange(1, n - 1)
+    a = jnp.zeros((n, n)).at[0, 0].set(1.0).at[n - 1, n - 1].set(1.0)
+    a = a.at[i, i - 1].set(h[i]).at[i, i].set(2.0 * (h[i - 1] + h[i])).at[i, i + 1].set(h[i - 1])
+    rhs = jnp.zeros_like(flat).at[i].set(3.0 * (h[i][:, None] * dy[i - 1] + h[i - 1][:, None] * dy[i]))
+    m = jnp.linalg.solve(a, rhs)
+
+    def s(tq):
+        tq = jnp.asarray(tq)
+        k = jnp.clip(jnp.searchsorted(t, tq, side="right") - 1, 0, n - 2)
+        hk = h[k][:, None]
+        u = ((tq - t[k]) / h[k])[:, None]
+        h00, h10 = 2 * u ** 3 - 3 * u ** 2 + 1, u ** 3 - 2 * u ** 2 + u
+        h01, h11 = -2 * u ** 3 + 3 * u ** 2, u ** 3 - u ** 2
+        out = h00 * flat[k] + h10 * hk * m[k] + h01 * flat[k + 1] + h11 * hk * m[k + 1]
+        return out.reshape(tq.shape + y.shape[1:])
+
+    return s
