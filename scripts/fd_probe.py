@@ -19,6 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from hexjax.analysis.gradcheck import central_differences, group_cosines
 from hexjax.analysis.space import Bound, ParamSpace, make_space
 from hexjax.control.cpg import CPGController
 from hexjax.control.gait import GaitController
@@ -91,16 +92,6 @@ val, g = jax.jit(jax.value_and_grad(obj))(u0)
 f = jax.jit(obj)
 print(f"{vars(a)}\nobjective {float(val):.6g} (compile + gradient {time.time() - t0:.0f} s)", flush=True)
 for eps in [float(e) for e in a.eps.split(",")]:
-    fd = {}
-    for k, v in u0.items():
-        col = np.zeros(v.size)
-        for j in range(v.size):
-            d = jnp.zeros(v.size).at[j].set(eps).reshape(v.shape)
-            col[j] = (float(f({**u0, k: v + d})) - float(f({**u0, k: v - d}))) / (2 * eps)
-        fd[k] = col
-    for group, names in groups.items():
-        ad = np.concatenate([np.ravel(np.asarray(g[n])) for n in names])
-        b = np.concatenate([fd[n] for n in names])
-        cos = float(ad @ b / (np.linalg.norm(ad) * np.linalg.norm(b) + 1e-30))
+    for group, (cos, ad, b) in group_cosines(g, central_differences(f, u0, eps), groups).items():
         print(f"eps {eps:g} {group:20s} cos {cos:+.3f} |autodiff| {np.linalg.norm(ad):.3g} "
               f"|FD| {np.linalg.norm(b):.3g}", flush=True)

@@ -11,6 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from hexjax.analysis.gradcheck import central_differences, group_cosines
 from hexjax.analysis.space import make_space
 from hexjax.analysis.tune import per_env_objective, tune
 from hexjax.analysis.tune_config import TuneConfig
@@ -29,21 +30,10 @@ GROUPS = {"gait": ["step_length", "step_height", "swing_time"],
 def _cosines(obj, u0, groups, eps=1e-3):
     """Per group: (cosine of the autodiff gradient of obj at u0 with central differences, autodiff, FD)."""
     g = jax.jit(jax.grad(obj))(u0)
-    f = jax.jit(obj)
-    fd = {}
-    for k, v in u0.items():
-        col = np.zeros(v.size)
-        for j in range(v.size):
-            d = jnp.zeros(v.size).at[j].set(eps).reshape(v.shape)
-            col[j] = (float(f({**u0, k: v + d})) - float(f({**u0, k: v - d}))) / (2 * eps)
-        fd[k] = col
-    out = {}
-    for group, names in groups.items():
-        a = np.concatenate([np.ravel(np.asarray(g[n])) for n in names])
-        b = np.concatenate([fd[n] for n in names])
+    res = group_cosines(g, central_differences(jax.jit(obj), u0, eps), groups)
+    for group, (_, a, b) in res.items():
         assert np.all(np.isfinite(a)) and np.linalg.norm(b) > 0, (group, a, b)
-        out[group] = (float(a @ b / (np.linalg.norm(a) * np.linalg.norm(b))), a, b)
-    return out
+    return res
 
 
 def _travel_objective(fn, model, space, p, terr, keys):

@@ -3,8 +3,8 @@ foothold planner (Eqs. 13-18) and the semi-ellipse swing, for any hexjax `RobotS
 drives the MJX hexapod, not Octopus-III).
 
 Per step T_S one tripod supports and the other swings (Sect. 4.1, Fig. 10); legs LF, LM, LH, RF, RM, RH
-are the paper's FLF, MLF, RLF, FRF, MRF, RRF, so group 0 (LF, RM, LH) is {FLF, MRF, RLF} and group 1
-(LM, RF, RH) is {MLF, FRF, RRF}.
+are the paper's FLF, MLF, RLF, FRF, MRF, RRF, so group 0 (LF, LH, RM) is {FLF, RLF, MRF} and group 1
+(LM, RH, RF) is {MLF, RRF, FRF}, each listed counter-clockwise (`TRIPODS`).
 
 * `body_move`: the farthest body displacement d along the walking direction alpha (Eqs. 7-8) such that
   the CoG projection keeps a margin delta_s inside the support triangle (Eq. 9) and every support foot
@@ -18,15 +18,15 @@ are the paper's FLF, MLF, RLF, FRF, MRF, RRF, so group 0 (LF, RM, LH) is {FLF, M
   stride combinations are scored at once (n^3 for n candidates) and the largest total stride wins.
 * `swing_path`: the semi-ellipse from a foot's lift-off point to its foothold, apex `height` (Sect. 4.3).
 
-The CoG is taken at the torso centre (the MJX robots are symmetric). No valid candidate gives d = 0 (the
-body waits); the returned `ok` flags say so.
+The CoG is taken at the torso centre (the MJX robots are symmetric). When no candidate is valid the body
+waits (d = 0) and the returned `ok` flag is False.
 """
 
 from __future__ import annotations
 
-import numpy as np
 import jax
 import jax.numpy as jnp
+import numpy as np
 from flax import struct
 
 from hexjax.robot import RobotSpec, hip_positions, leg_ik
