@@ -267,9 +267,10 @@ def tune(cfg: TuneConfig, out_dir: str, resume: bool = True, progress: bool = Tr
     to out_dir/tune.png. `time_limit` (s) stops early, at a step boundary."""
     t_start = time.perf_counter()
     problem = Problem.build(cfg)
-    if cfg.controller == "cpg" and (cfg.solver_iterations or PhysicsConfig().iterations) < 4:
+    iterations = problem.physics().iterations
+    if cfg.controller == "cpg" and iterations < 4:
         print(f"note: the CPG on yu2019 needs solver_iterations >= 4 for gradients that agree with finite "
-              f"differences (docs/tuning.md); this config runs {cfg.solver_iterations or PhysicsConfig().iterations}")
+              f"differences (docs/tuning.md); this config runs {iterations}")
     u0 = problem.space.init(problem.params0)
     opt = make_optimizer(cfg)
     digest = _config_digest(cfg, "grad")

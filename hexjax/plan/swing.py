@@ -64,7 +64,7 @@ def _terrain_under(foot, start, end, profile):
     return jnp.interp(t, grid, profile)
 
 
-def _trajectory(robot, cfg, q0, q1, inner):
+def _trajectory(cfg, q0, q1, inner):
     ts = jnp.linspace(0.0, cfg.duration, cfg.knots + 2)
     s = clamped_spline(ts, jnp.concatenate([q0[None], inner, q1[None]], 0))
     tq = jnp.linspace(0.0, cfg.duration, cfg.samples)
@@ -75,7 +75,7 @@ def swing_costs(robot: RobotSpec, cfg: SwingConfig, start, end, profile, inner):
     """(effort, clearance violation (S,), limit violation (S, 3), foot path (S, 3)) of knot angles inner."""
     q0, _ = leg_ik(robot, start)
     q1, _ = leg_ik(robot, end)
-    tq, s = _trajectory(robot, cfg, q0, q1, inner)
+    tq, s = _trajectory(cfg, q0, q1, inner)
     q = s(tq)
     dt = tq[1] - tq[0]
     acc = (q[2:] - 2 * q[1:-1] + q[:-2]) / dt ** 2
