@@ -29,6 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from hexjax.plan.support import side_distances
 from hexjax.robot import RobotSpec, hip_positions, leg_ik
 
 TRIPODS = (np.array([0, 2, 4]), np.array([1, 5, 3]))  # CCW in the torso frame: (LF, LH, RM), (LM, RH, RF)
@@ -68,10 +69,7 @@ def _rot(yaw):
 
 def edge_margins(point, tri):
     """(3,) signed distances from point (2,) to the edges of a CCW triangle (3, 2): > 0 inside."""
-    a, b = tri, jnp.roll(tri, -1, axis=0)
-    d = b - a
-    n = jnp.stack([d[:, 1], -d[:, 0]], -1) / jnp.linalg.norm(d, axis=-1, keepdims=True)  # outward
-    return jnp.sum(n * (a - point), -1)
+    return side_distances(point, tri, jnp.ones(3, bool))[0]
 
 
 def _in_workspace(feet, body_xy, yaw, legs, p: MotionParams):

@@ -28,21 +28,15 @@ import jax.numpy as jnp
 import numpy as np
 
 
-def _sides(poly, valid):
-    """Side i runs from vertex i to the next valid vertex: start (K, 2), end (K, 2), side valid (K,)."""
-    k = poly.shape[-2]
-    n = jnp.sum(valid)
-    nxt = jnp.where(jnp.arange(k) + 1 < n, jnp.arange(k) + 1, 0)
-    return poly, poly[nxt], valid
-
-
 def _side_geometry(poly, valid):
-    """Inward unit normals (K, 2) and offsets (K,): inside means n . x <= b for a CCW polygon."""
-    a, b, ok = _sides(poly, valid)
-    d = b - a
+    """Side i runs from vertex i to the next valid vertex. Returns outward unit normals (K, 2) and offsets
+    (K,) (inside a CCW polygon n . x <= b) and which sides are valid (K,)."""
+    k = poly.shape[-2]
+    nxt = jnp.where(jnp.arange(k) + 1 < jnp.sum(valid), jnp.arange(k) + 1, 0)
+    d = poly[nxt] - poly
     length = jnp.linalg.norm(d, axis=-1)
-    normal = jnp.stack([d[:, 1], -d[:, 0]], -1) / jnp.maximum(length, 1e-12)[:, None]  # outward for CCW
-    return normal, jnp.sum(normal * a, -1), ok & (length > 1e-9)
+    normal = jnp.stack([d[:, 1], -d[:, 0]], -1) / jnp.maximum(length, 1e-12)[:, None]
+    return normal, jnp.sum(normal * poly, -1), valid & (length > 1e-9)
 
 
 def side_distances(point, poly, valid):
@@ -63,7 +57,8 @@ def incenter_iterative(poly, valid, iterations: int = 60, collinear_tol: float =
     # Step 1: midpoint of two non-adjacent vertices; a triangle has none (that midpoint lies on a side),
     # so a triangle starts at its centroid
     s0 = jnp.where(n > 3, 0.5 * (poly[0] + poly[2]), centroid)
-    span = jnp.where(valid[:, None], poly, poly[0]).max(0) - jnp.where(valid[:, None], poly, poly[0]).min(0)
+    masked = jnp.where(valid[:, None], poly, poly[0])
+    span = masked.max(0) - masked.min(0)
     a0 = 0.25 * jnp.min(span)
 
     def nearest(s):
