@@ -34,6 +34,10 @@ def _cmd_experiment(a) -> int:
         return _cmd_luneckas(a)
     if a.name == "zhao2018":
         return _cmd_zhao(a)
+    if a.name == "zhao2018-mjx":
+        return _cmd_zhao_mjx(a)
+    if a.name == "chen2019":
+        return _cmd_chen(a)
     from hexjax.analysis.experiment import format_experiment, plot_experiment, run_experiment
     res = run_experiment(a.name, batch=a.batch, seed=a.seed, duration=a.duration, record=bool(a.png))
     c = res["config"]
@@ -70,6 +74,52 @@ def _cmd_zhao(a) -> int:
         print(f"wrote {a.png}")
     if a.json:
         _write_json(a.json, res)
+    return 0
+
+
+def _cmd_zhao_mjx(a) -> int:
+    from hexjax.plan.closed_loop import plot_closed_loop, run_closed_loop
+    res = run_closed_loop(n=a.batch, seed=a.seed, duration=a.duration, blind=a.blind, chunk=a.chunk)
+    c, k, m = res["config"], res["kinematic"], res["mjx"]
+    print(f"\nzhao2018-mjx: the planner steering the MJX {c['robot']} robot, {c['fields']} random fields (seed "
+          f"{c['seed']}, {res['obstacles_per_field']:.1f} boxes each, straight line blocked in "
+          f"{res['straight_line_blocked']}), {c['duration_s']:g} s{', planner BLIND to the obstacles' if c['blind'] else ''}")
+    print(f"kinematic planner: success {100 * k['success_rate']:.1f} %, collisions {k['collisions']}")
+    rate = m["success_rate_where_kinematic_succeeds"]
+    print(f"MJX closed loop: success {100 * rate:.1f} % where the kinematic planner succeeds "
+          f"({100 * m['success_rate_all']:.1f} % of all); reached {m['reached']}, touched {m['touched']}, fell "
+          f"{m['fell']}, NaN {m['nan']}; final distance median {100 * m['final_distance_m']['median']:.1f} cm; "
+          f"robot-circle clearance min {100 * m['circle_clearance_m']['min']:.1f} cm")
+    print(f"wall {res['wall_s']:.1f} s (compile {res['compile_s']:.1f} s), {res['env_steps_per_s']:,.0f} env-steps/s")
+    if a.png:
+        plot_closed_loop(res, a.png)
+        print(f"wrote {a.png}")
+    if a.json:
+        _write_json(a.json, {k: v for k, v in res.items() if not k.startswith("_")})
+    return 0
+
+
+def _cmd_chen(a) -> int:
+    from hexjax.plan.rugged import plot_chen2019, run_chen2019
+    res = run_chen2019(n=a.batch, seed=a.seed, duration=a.duration or 16.0, chunk=a.chunk)
+    c = res["config"]
+    print(f"\nchen2019: {c['robot']} robot over {c['patches']} rugged wave patches (seed {c['seed']}, peaks "
+          f"{1000 * c['patch']['peak_range'][0]:.0f}-{1000 * c['patch']['peak_range'][1]:.0f} mm), "
+          f"{c['speed']:.2f} m/s, {c['duration_s']:g} s")
+    print(f"{'controller':>16} {'capsized':>9} {'crossed':>8} {'stalled':>8} {'tilt>30deg':>10} {'max tilt p95':>13}")
+    for k in [k for k in res if k == "planned" or k.startswith("fixed")]:
+        r = res[k]
+        print(f"{k:>16} {r['capsized']:>9} {r['crossed']:>8} {r['stalled']:>8} {r['tilted_over_30deg']:>10} "
+              f"{r['max_tilt_deg']['p95']:>12.1f}d")
+    p = res["planned"]
+    print(f"planned: smallest stability margin at a transition {100 * p['min_stability_margin_m']['min']:.1f} cm "
+          f"(median {100 * p['min_stability_margin_m']['median']:.1f} cm); control steps with a leg target out of "
+          f"reach {p['steps_with_a_leg_out_of_reach']}")
+    if a.png:
+        plot_chen2019(res, a.png)
+        print(f"wrote {a.png}")
+    if a.json:
+        _write_json(a.json, {k: v for k, v in res.items() if not k.startswith("_")})
     return 0
 
 
@@ -263,8 +313,10 @@ def main(argv=None) -> int:
     e.set_defaults(fn=_cmd_evaluate)
 
     x = sub.add_parser("experiment", help="paper experiments: luneckas2020 (seed 000 matrix), yu2019-step, yu2019-ditch, "
-                                          "zhao2018 (seed 004 experiment 1, avoidance planner)")
-    x.add_argument("name", choices=["luneckas2020", "yu2019-step", "yu2019-ditch", "zhao2018"])
+                                          "zhao2018 (seed 004 experiment 1, avoidance planner), zhao2018-mjx (the "
+                                          "planner steering the MJX robot), chen2019 (seed 002 rugged patch)")
+    x.add_argument("name", choices=["luneckas2020", "yu2019-step", "yu2019-ditch", "zhao2018", "zhao2018-mjx",
+                                    "chen2019"])
     x.add_argument("--batch", "--n", dest="batch", type=int, default=16,
                    help="randomised terrains per row / cell (default 16)")
     x.add_argument("--gaits", default="", help="luneckas2020: comma list of wave,tripod (default both)")
@@ -273,6 +325,8 @@ def main(argv=None) -> int:
     x.add_argument("--duration", type=float, default=None,
                    help="yu2019 presets: s (default: the preset's); luneckas2020 walks its distances")
     x.add_argument("--json", default="", help="write the numbers here")
+    x.add_argument("--blind", action="store_true", help="zhao2018-mjx: the planner is not told of the obstacles")
+    x.add_argument("--chunk", type=int, default=0, help="zhao2018-mjx, chen2019: envs per rollout call (default all)")
     x.add_argument("--dataset", default="", help="luneckas2020: also write the runs as a predictor dataset (.npz)")
     x.add_argument("--png", default="", help="write plots here (luneckas2020: <stem>_bars.png, <stem>_field.png)")
     x.set_defaults(fn=_cmd_experiment)

@@ -112,7 +112,20 @@ def yu2019() -> RobotSpec:
                      kp=60.0, kv=0.6, max_torque=8.0, foot_radius=0.012)
 
 
-PRESETS = {"luneckas2020": luneckas2020, "yu2019": yu2019}
+def chen2019() -> RobotSpec:
+    """A hexapod sized for the rugged patch of Chen et al. 2019 (seed 002) Sect. 3.1: torso centre ~170 mm
+    above the ground in its initial stance (the paper's "height of the robot torso in initial state"), long
+    legs (femur 140 mm, tibia 200 mm) so a foot can stand on a 178 mm peak while the torso rides above it.
+    The paper gives no link lengths or masses; these are chosen to fit those heights (docs/planning.md). The
+    femur lifts to 2.0 rad (the other presets: 1.4) so a swing foot can pass a peak near hip height."""
+    return RobotSpec(name="chen2019", coxa_length=0.06, femur_length=0.14, tibia_length=0.20,
+                     total_mass=4.0, body_length=0.30, body_width=0.16, body_thickness=0.05,
+                     hip_x=0.12, hip_y=0.08, stance_radial=0.20, stance_splay=0.45, body_clearance=0.145,
+                     kp=80.0, kv=0.8, max_torque=12.0, foot_radius=0.012,
+                     femur_range=(-1.4, 2.0), tibia_range=(-2.8, 0.2))
+
+
+PRESETS = {"luneckas2020": luneckas2020, "yu2019": yu2019, "chen2019": chen2019}
 
 
 def get_robot(name: str) -> RobotSpec:

@@ -65,11 +65,14 @@ class TerrainSpec:
     ditch_gap_range: Tuple[float, float] = (0.25, 0.35)  # solid ground between ditches
     # grids (waves, rough)
     cell: float = 0.02
+    taper: float = 0.0  # waves: heights fade to 0 over this many m inside the patch's edges (0: cut off)
     slots_per_leg: int = 2  # terrain boxes each leg collides with at a time (see sim.model)
 
     def validate(self) -> None:
         if self.kind not in KINDS:
             raise ValueError(f"terrain.kind={self.kind!r}: choose one of {KINDS}")
+        if not (math.isfinite(self.taper) and 0 <= self.taper <= 0.5 * min(self.length, self.width)):
+            raise ValueError(f"terrain.taper={self.taper!r}: must be in [0, half the patch's shorter side]")
         for f in ("length", "width", "cell", "jitter"):
             v = getattr(self, f)
             if not (math.isfinite(v) and v >= 0) or (f != "jitter" and v == 0):
@@ -212,6 +215,10 @@ def _waves(spec: TerrainSpec, key) -> Terrain:
             for k in range(4))
     f = (f - f.min()) / (f.max() - f.min() + 1e-9)
     peak = jax.random.uniform(k3, (), minval=spec.height_range[0], maxval=spec.height_range[1])
+    if spec.taper > 0:  # a patch rising out of a flat floor: a smooth ramp from every edge
+        ramp = lambda d: jnp.clip(d / spec.taper, 0.0, 1.0) ** 2 * (3.0 - 2.0 * jnp.clip(d / spec.taper, 0.0, 1.0))
+        lx, ly = nx * spec.cell, ny * spec.cell
+        f = f * ramp(jnp.minimum(x, lx - x)) * ramp(jnp.minimum(y, ly - y))
     return _grid_boxes(spec, peak * f)
 
 

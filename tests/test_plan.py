@@ -8,7 +8,7 @@ import pytest
 
 from hexjax.plan.avoid import (AvoidConfig, capacity_line, clearance, fan, octopus_params, penalty, plan,
                                scores)
-from hexjax.plan.fields import TABLE2, _dist_to_polyline, plan_batch, random_fields, zhao2018_experiment
+from hexjax.plan.fields import TABLE2, dist_to_polyline, plan_batch, random_fields, zhao2018_experiment
 
 
 def test_penalty_is_eq5():
@@ -71,7 +71,7 @@ def test_experiment1_reaches_the_target_without_overlap():
 def test_random_fields_batch_plans_every_field_safely():
     fields = random_fields(jax.random.PRNGKey(3), 256, n_obstacles=24)
     # the lane is free by construction: every kept obstacle clears it by the lane's half-width
-    d = np.asarray(_dist_to_polyline(fields.centres, fields.lane))
+    d = np.asarray(dist_to_polyline(fields.centres, fields.lane))
     v = np.asarray(fields.valid)
     assert np.all(d[v] > 1.0 + np.asarray(fields.radii)[v])
     assert v.sum(1).min() >= 1

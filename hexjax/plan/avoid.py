@@ -104,7 +104,7 @@ def octopus_params(n_dirs: int = 36, d_min: float = 0.05, d_max: float = 0.2) ->
 
 def _fmt(v) -> str:
     v = np.asarray(v, float)
-    return f"{float(v):.6g}" if v.size == 1 else repr(np.round(v, 6).tolist())
+    return f"{v.item():.6g}" if v.size == 1 else repr(np.round(v, 6).tolist())
 
 
 def validate_params(p: AvoidParams) -> None:

@@ -97,7 +97,7 @@ class Fields:
     lane: jax.Array
 
 
-def _dist_to_polyline(pts, line):
+def dist_to_polyline(pts, line):
     """(..., M) distance of points (..., M, 2) to a polyline (..., K, 2)."""
     a, b = line[..., :-1, :], line[..., 1:, :]  # (..., K - 1, 2)
     ab = b - a
@@ -109,15 +109,15 @@ def _dist_to_polyline(pts, line):
 
 def random_fields(key, n: int, n_obstacles: int = 16, length: float = 8.0, width: float = 6.0,
                   radius_range=(0.15, 0.35), lane_points: int = 4, lane_sway: float = 1.2,
-                  lane_half_width: float = 1.0) -> Fields:
-    """N fields like experiment 1: start (0, 0), target (U(-1, 1), length); obstacle circles uniform in a
+                  lane_half_width: float = 1.0, target_sway: float = 1.0) -> Fields:
+    """N fields like experiment 1: start (0, 0), target (U(-target_sway, target_sway), length); obstacle circles uniform in a
     `width` x `length` corridor. Each field has a polyline lane from start to target through
     `lane_points` waypoints swaying up to `lane_sway` m sideways, always ahead (y increasing, so the
     forward fan can follow it); obstacles closer than `lane_half_width` + their radius to it are dropped,
     so a robot no wider than the lane has a collision-free path by construction. The default half-width is
     the Octopus-III circles' reach (0.7 m) + d_max (0.2 m) + 0.1 m."""
     ks = jax.random.split(key, 5)
-    tx = jax.random.uniform(ks[0], (n,), minval=-1.0, maxval=1.0)
+    tx = jax.random.uniform(ks[0], (n,), minval=-target_sway, maxval=target_sway)
     start = jnp.zeros((n, 2))
     target = jnp.stack([tx, jnp.full((n,), length)], -1)
     ys = jnp.linspace(0.0, length, lane_points + 2)[1:-1]
@@ -128,7 +128,7 @@ def random_fields(key, n: int, n_obstacles: int = 16, length: float = 8.0, width
     cy = jax.random.uniform(ks[3], (n, n_obstacles), minval=0.8, maxval=length - 0.8)
     centres = jnp.stack([cx, cy], -1)
     radii = jax.random.uniform(ks[4], (n, n_obstacles), minval=radius_range[0], maxval=radius_range[1])
-    valid = _dist_to_polyline(centres, lane) > lane_half_width + radii
+    valid = dist_to_polyline(centres, lane) > lane_half_width + radii
     return Fields(start=start, target=target, centres=centres, radii=radii, valid=valid, lane=lane)
 
 

@@ -94,11 +94,10 @@ def _triples(k: int) -> np.ndarray:
     return _TRIPLES[k]
 
 
-def incenter_exact(poly, valid):
-    """Chebyshev centre of a convex CCW polygon (K, 2), valid (K,): (centre (2,), radius ()) (module notes)."""
-    poly = jnp.asarray(poly, jnp.float32)
-    normal, off, ok = _side_geometry(poly, valid)
-    tri = _triples(poly.shape[-2])
+def _chebyshev(normal, off, ok, scale):
+    """Largest circle inside the half-planes n_i . x <= b_i (rows where ok): (centre (2,), radius ()), by the
+    best feasible solution of n_i . x + r = b_i over every triple (module notes); radius 0 if none is."""
+    tri = _triples(normal.shape[-2])
     m = jnp.concatenate([normal[tri], jnp.ones(tri.shape + (1,))], -1)  # (T, 3, 3): n . x + r = b
     rhs = off[tri]
     det = jnp.linalg.det(m)
@@ -106,10 +105,28 @@ def incenter_exact(poly, valid):
     sol = jnp.linalg.solve(jnp.where(good[:, None, None], m, jnp.eye(3)), jnp.where(good[:, None], rhs, 0.0)[..., None])[..., 0]
     x, r = sol[:, :2], sol[:, 2]
     slack = off[None, :] - x @ normal.T - r[:, None]  # >= 0 where every side is respected
-    scale = jnp.max(jnp.abs(jnp.where(valid[:, None], poly, 0.0))) + 1.0
     feasible = good & jnp.all(jnp.where(ok[None, :], slack >= -1e-5 * scale, True), -1) & (r > 0)
     best = jnp.argmax(jnp.where(feasible, r, -jnp.inf))
     return x[best], jnp.where(feasible[best], r[best], 0.0)
+
+
+def incenter_exact(poly, valid):
+    """Chebyshev centre of a convex CCW polygon (K, 2), valid (K,): (centre (2,), radius ()) (module notes)."""
+    poly = jnp.asarray(poly, jnp.float32)
+    normal, off, ok = _side_geometry(poly, valid)
+    return _chebyshev(normal, off, ok, jnp.max(jnp.abs(jnp.where(valid[:, None], poly, 0.0))) + 1.0)
+
+
+def overlap_center(poly_a, valid_a, poly_b, valid_b):
+    """Centre and radius of the largest circle inside both convex CCW polygons: Chen 2019 Sect. 2.2's O_2, the
+    incenter of the overlap of the current and the next support triangles, where the CoG should be at the
+    support-swing transition (Fig. 1). Radius 0 when they do not overlap."""
+    pa, pb = jnp.asarray(poly_a, jnp.float32), jnp.asarray(poly_b, jnp.float32)
+    na, oa, ka = _side_geometry(pa, valid_a)
+    nb, ob, kb = _side_geometry(pb, valid_b)
+    scale = jnp.maximum(jnp.max(jnp.abs(jnp.where(valid_a[:, None], pa, 0.0))),
+                        jnp.max(jnp.abs(jnp.where(valid_b[:, None], pb, 0.0)))) + 1.0
+    return _chebyshev(jnp.concatenate([na, nb]), jnp.concatenate([oa, ob]), jnp.concatenate([ka, kb]), scale)
 
 
 def check_polygons(poly, valid) -> None:
