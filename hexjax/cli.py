@@ -77,6 +77,16 @@ def _cmd_zhao(a) -> int:
     return 0
 
 
+def _save_results(a, res, plot) -> int:
+    """--png via `plot(res, path)`, --json without the `_`-keys (arrays kept for plots)."""
+    if a.png:
+        plot(res, a.png)
+        print(f"wrote {a.png}")
+    if a.json:
+        _write_json(a.json, {k: v for k, v in res.items() if not k.startswith("_")})
+    return 0
+
+
 def _cmd_zhao_mjx(a) -> int:
     from hexjax.plan.closed_loop import plot_closed_loop, run_closed_loop
     res = run_closed_loop(n=a.batch, seed=a.seed, duration=a.duration, blind=a.blind, chunk=a.chunk)
@@ -91,12 +101,7 @@ def _cmd_zhao_mjx(a) -> int:
           f"{m['fell']}, NaN {m['nan']}; final distance median {100 * m['final_distance_m']['median']:.1f} cm; "
           f"robot-circle clearance min {100 * m['circle_clearance_m']['min']:.1f} cm")
     print(f"wall {res['wall_s']:.1f} s (compile {res['compile_s']:.1f} s), {res['env_steps_per_s']:,.0f} env-steps/s")
-    if a.png:
-        plot_closed_loop(res, a.png)
-        print(f"wrote {a.png}")
-    if a.json:
-        _write_json(a.json, {k: v for k, v in res.items() if not k.startswith("_")})
-    return 0
+    return _save_results(a, res, plot_closed_loop)
 
 
 def _cmd_chen(a) -> int:
@@ -115,12 +120,7 @@ def _cmd_chen(a) -> int:
     print(f"planned: smallest stability margin at a transition {100 * p['min_stability_margin_m']['min']:.1f} cm "
           f"(median {100 * p['min_stability_margin_m']['median']:.1f} cm); control steps with a leg target out of "
           f"reach {p['steps_with_a_leg_out_of_reach']}")
-    if a.png:
-        plot_chen2019(res, a.png)
-        print(f"wrote {a.png}")
-    if a.json:
-        _write_json(a.json, {k: v for k, v in res.items() if not k.startswith("_")})
-    return 0
+    return _save_results(a, res, plot_chen2019)
 
 
 def _cmd_plan(a) -> int:
@@ -357,7 +357,8 @@ def main(argv=None) -> int:
     b.add_argument("--seconds", type=float, default=2.0, help="simulated seconds per rollout")
     b.add_argument("--controller", default="gait",
                    help="comma list of gait (seed-000 open loop), cpg (Yu 2019), tactile (seed-000 with the tactile "
-                        "switch); 'both' = gait,cpg. Rows other than gait get their cost against gait")
+                        "switch), avoid (seed-000 steered by the Zhao 2018 planner); 'both' = gait,cpg. Rows other than gait "
+                        "get their cost against gait")
     b.add_argument("--json", default="", help="write the numbers here")
     b.set_defaults(fn=_cmd_bench)
 

@@ -140,6 +140,18 @@ def test_iterative_incenter_error_distribution():
         assert d["within_1e-3"] >= (1.0 if k == "3" else 0.99), (k, d)
 
 
+def test_boxed_in_robot_holds_its_place_without_collision():
+    """Every candidate overlapping an obstacle: the robot holds for every cycle (counted as stuck), never moves
+    into one."""
+    p, cfg = octopus_params(), AvoidConfig(max_cycles=5)
+    ang = np.radians(np.arange(0, 360, 20))
+    centres = np.stack([1.2 * np.cos(ang), 1.2 * np.sin(ang)], -1)  # a ring just outside the robot circles
+    out = plan(np.zeros(2), np.array([0.0, 8.0]), centres, np.full(len(ang), 0.3), np.ones(len(ang), bool), p, cfg)
+    assert int(out.stuck) == 5 and not bool(out.reached)
+    np.testing.assert_allclose(np.asarray(out.path), 0.0, atol=1e-6)
+    assert float(out.min_clearance) > 0.0
+
+
 def test_support_polygon_checks():
     from hexjax.plan.support import check_polygons
     ok = np.array([[[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]]])

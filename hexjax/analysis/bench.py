@@ -55,15 +55,16 @@ def bench(robot: str = "luneckas2020", batches: Sequence[int] = (16, 64, 256), s
     """Times `rollout` at each batch size on each terrain. env-steps = envs x physics steps.
 
     controller: a comma list of 'gait' (seed-000 open-loop gait), 'cpg' (Yu 2019 CPG with reflexes and FSM),
-    'tactile' (seed-000 gait with the tactile overcoming switch); 'both' means 'gait,cpg'. With 'gait' in the
+    'tactile' (seed-000 gait with the tactile overcoming switch), 'avoid' (the seed-000 gait steered by the
+    Zhao 2018 planner, scoring its 37 candidates every control step); 'both' means 'gait,cpg'. With 'gait' in the
     list every other controller's row gets `overhead_vs_gait` = gait rate / its rate - 1."""
     for b in batches:
         if not isinstance(b, int) or b < 1:
             raise ValueError(f"batches entry {b!r}: must be an integer >= 1")
     names = ["gait", "cpg"] if controller == "both" else controller.split(",")
-    bad = [n for n in names if n not in ("gait", "cpg", "tactile")]
+    bad = [n for n in names if n not in ("gait", "cpg", "tactile", "avoid")]
     if bad or not names:
-        raise ValueError(f"controller={controller!r}: a comma list of 'gait', 'cpg', 'tactile' (or 'both')")
+        raise ValueError(f"controller={controller!r}: a comma list of 'gait', 'cpg', 'tactile', 'avoid' (or 'both')")
     spec = get_robot(robot)
     ctrls = {}
     for n in names:
@@ -72,6 +73,9 @@ def bench(robot: str = "luneckas2020", batches: Sequence[int] = (16, 64, 256), s
         elif n == "cpg":
             from hexjax.control.cpg import CPGController
             ctrls["cpg"] = CPGController(spec, gait=gait)
+        elif n == "avoid":
+            from hexjax.plan.closed_loop import AvoidGaitController
+            ctrls["avoid"] = AvoidGaitController(spec, gait=gait)
         else:
             from hexjax.control.tactile import TactileGaitController
             ctrls["tactile"] = TactileGaitController(spec, gait=gait)

@@ -394,25 +394,28 @@ def run_closed_loop(n: int = 32, seed: int = 0, robot: str = "luneckas2020", n_T
             "held_cycles": int(cat(lambda s: s.final_state.held).sum()),
         },
         "wall_s": wall, "compile_s": compile_s, "env_steps_per_s": env_steps / max(wall - compile_s, 1e-9),
-        "_fields": fields, "_terrain": terrain, "_traces": traces, "_ok": ok, "_kin": kin,
+        "_fields": fields, "_terrain": terrain, "_traces": traces, "_ok": ok, "_kin": kin, "_blocked": blocked,
     }
     return res
 
 
 def plot_closed_loop(res: Dict, png: str, k: int = 6) -> None:
-    """The first k fields: obstacle boxes, the kinematic plan and the MJX torso path."""
+    """k fields, those whose straight line is blocked first: obstacle boxes (and their circles), the kinematic
+    plan and the MJX torso path."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     f, tr, kin, ok = res["_fields"], res["_terrain"], res["_kin"], res["_ok"]
-    k = min(k, len(ok))
+    order = np.concatenate([np.flatnonzero(res["_blocked"]), np.flatnonzero(~res["_blocked"])])[:k]
+    k = len(order)
     cols = min(3, k)
     rows = int(math.ceil(k / cols))
     fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.6 * rows), squeeze=False)
-    for i, ax in enumerate(axes.ravel()):
-        if i >= k:
+    for slot, ax in enumerate(axes.ravel()):
+        if slot >= k:
             ax.axis("off")
             continue
+        i = int(order[slot])
         for p, h, v, c, r in zip(np.asarray(tr.box_pos[i]), np.asarray(tr.box_half[i]), np.asarray(tr.box_valid[i]),
                                  np.asarray(f.centres[i]), np.asarray(f.radii[i])):
             if not v:
@@ -430,8 +433,9 @@ def plot_closed_loop(res: Dict, png: str, k: int = 6) -> None:
         ax.set_aspect("equal")
         ax.set_xlim(-0.4, 2.4)
         ax.set_ylim(-0.9, 0.9)
-        ax.set_title(f"field {i}: {'ok' if ok[i] else 'FAILED'}", fontsize=9)
-        if i == 0:
+        ax.set_title(f"field {i}{' (straight line blocked)' if res['_blocked'][i] else ''}: "
+                     f"{'ok' if ok[i] else 'FAILED'}", fontsize=9)
+        if slot == 0:
             ax.legend(fontsize=6, loc="lower right")
     fig.tight_layout()
     fig.savefig(png, dpi=110)

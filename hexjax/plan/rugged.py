@@ -38,7 +38,6 @@ over a batch of randomised patches and counts capsizes; `plot_chen2019` draws Fi
 from __future__ import annotations
 
 import dataclasses
-import math
 import time
 from typing import Dict, Optional
 
