@@ -1,4 +1,4 @@
-"""The `hexjax` command: evaluate, experiment, dataset, predictor, bench, tune, terrain."""
+"""The `hexjax` command: evaluate, experiment, dataset, predictor, bench, tune, plan, render, terrain."""
 
 from __future__ import annotations
 
@@ -270,6 +270,19 @@ def _cmd_tune(a) -> int:
     return 0
 
 
+def _cmd_render(a) -> int:
+    from hexjax.render import render_walk
+    envs = [int(x) for x in a.envs.split(",") if x.strip()]
+    res = render_walk(robot_name=a.robot, terrain_name=a.terrain, controller=a.controller, seconds=a.seconds,
+                      seed=a.seed, envs=envs, out=a.out, width=a.width, height=a.height, every=a.every,
+                      still=a.still or None)
+    for w in res["written"]:
+        print(f"wrote {w}")
+    print(f"{res['frames_per_video']} frames per video at {res['fps']:.0f} fps; tactile steps per leg "
+          f"{res['tactile_steps']}; fell {res['fell']}")
+    return 0
+
+
 def _cmd_terrain(a) -> int:
     import jax
     import matplotlib
@@ -391,6 +404,21 @@ def main(argv=None) -> int:
     t.add_argument("--seed", type=int, default=0)
     t.add_argument("--png", default="terrain.png")
     t.set_defaults(fn=_cmd_terrain)
+
+    rd = sub.add_parser("render", help="record a short rollout and write an MP4 / GIF of chosen envs (MuJoCo "
+                                       "offscreen renderer; feet forces as arrows, tactile pads yellow when on)")
+    rd.add_argument("--robot", default="luneckas2020")
+    rd.add_argument("--terrain", default="high-large")
+    rd.add_argument("--controller", default="tactile", choices=["gait", "tactile", "cpg"])
+    rd.add_argument("--seconds", type=float, default=4.0)
+    rd.add_argument("--seed", type=int, default=0)
+    rd.add_argument("--envs", default="0", help="comma list of env indices (default 0)")
+    rd.add_argument("--out", default="out/walk.mp4", help=".mp4 or .gif (one file per env, _envK suffix)")
+    rd.add_argument("--width", type=int, default=640)
+    rd.add_argument("--height", type=int, default=480)
+    rd.add_argument("--every", type=int, default=2, help="render every this many control steps (default 2)")
+    rd.add_argument("--still", default="", help="also write the middle frame of the first env as a PNG here")
+    rd.set_defaults(fn=_cmd_render)
 
     a = p.parse_args(argv)
     try:

@@ -147,6 +147,10 @@ class Summary:
     foot_trace (B, T, 6, 3) or None  foot centres, world frame, m, when RolloutConfig.record
     ctrl_trace or None            the controller's `trace(state, obs)` per step, when it has one and
                                   RolloutConfig.record
+    qpos_trace (B, T, 25) or None  full generalised position (torso xyz, quat, 18 joints) per step, when
+                                  RolloutConfig.record (what `hexjax.render` replays)
+    force_trace (B, T, 6, 3), tactile_trace (B, T, 6) or None  each foot's terrain force (N, world) and
+                                  tactile pad on/off per step, when RolloutConfig.record
     final_state                   the controller state after the last step (reflex counters etc.)
     """
 
@@ -165,6 +169,9 @@ class Summary:
     foot_trace: Optional[jax.Array] = None
     ctrl_trace: Any = None
     final_state: Any = None
+    qpos_trace: Optional[jax.Array] = None
+    force_trace: Optional[jax.Array] = None
+    tactile_trace: Optional[jax.Array] = None
 
 
 def _yaw(q):
@@ -263,7 +270,8 @@ def _compiled(robot: RobotSpec, physics: PhysicsConfig, sensors: SensorConfig, c
             if cfg.record:
                 out = dict(pose=jnp.concatenate([d_new.qpos[:3], _yaw(q)[None]]),
                            feet=d_new.site_xpos[foot_sites],
-                           ctrl=controller.trace(cstate, obs) if has_trace else None)
+                           ctrl=controller.trace(cstate, obs) if has_trace else None,
+                           qpos=d_new.qpos, force=obs.foot_force, tactile=obs.tactile)
             else:
                 out = None
             return (d_new, cstate, acc), out
@@ -282,7 +290,8 @@ def _compiled(robot: RobotSpec, physics: PhysicsConfig, sensors: SensorConfig, c
         extra = {}
         if cfg.record:
             rec = jax.tree_util.tree_map(lambda a: a[n_settle:], rec)
-            extra = dict(trace=rec["pose"], foot_trace=rec["feet"], ctrl_trace=rec["ctrl"])
+            extra = dict(trace=rec["pose"], foot_trace=rec["feet"], ctrl_trace=rec["ctrl"], qpos_trace=rec["qpos"],
+                         force_trace=rec["force"], tactile_trace=rec["tactile"])
         return Summary(end_pose=end, final_state=cstate, **extra, **acc)
 
     def batched(m_shared, params, terrain, keys):

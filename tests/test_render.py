@@ -1,0 +1,69 @@
+"""`hexjax render`: offscreen frames of recorded rollouts and the video files."""
+
+import os
+import types
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from hexjax.mjcf import PhysicsConfig, physics_for
+from hexjax.render import render_env, write_video
+from hexjax.robot import get_robot
+from hexjax.sim.model import sim_model
+from hexjax.terrain import Terrain
+
+ROBOT = get_robot("luneckas2020")
+
+
+def _fake_recording(t=4):
+    """A Summary-like record: the stance keyframe walking 5 cm per frame, every pad off, then on from frame 2."""
+    sm = sim_model(ROBOT, physics_for("flat"))
+    q = np.tile(sm.qpos0, (1, t, 1))
+    q[0, :, 0] = 0.05 * np.arange(t)
+    tactile = np.zeros((1, t, 6), bool)
+    tactile[0, 2:, :] = True
+    force = np.zeros((1, t, 6, 3))
+    force[0, :, :, 2] = 5.0
+    return types.SimpleNamespace(qpos_trace=q, force_trace=force, tactile_trace=tactile)
+
+
+def _terrain():
+    return Terrain(box_pos=jnp.array([[[0.3, 0.0, 0.03]]]), box_half=jnp.array([[[0.02, 0.05, 0.03]]]),
+                   box_valid=jnp.ones((1, 1), bool), ground_z=jnp.zeros(1))
+
+
+def test_frames_show_the_robot_forces_and_tactile_pads(tmp_path):
+    rec = _fake_recording()
+    frames = render_env(ROBOT, PhysicsConfig(), _terrain(), rec, every=1, width=160, height=120, progress=False)
+    assert frames.shape == (4, 120, 160, 3) and frames.dtype == np.uint8
+    assert frames.std() > 10  # not a blank image
+    f = frames.astype(int)
+    red = lambda x: int(((x[..., 0] > 120) & (x[..., 0] - x[..., 1] > 70) & (x[..., 2] < 90)).sum())
+    yellow = lambda x: int(((x[..., 0] > 120) & (x[..., 1] > 100) & (abs(x[..., 0] - x[..., 1]) < 50)
+                            & (x[..., 2] < 60)).sum())
+    green = lambda x: int(((x[..., 1] > 150) & (x[..., 0] < 100) & (x[..., 2] < 100)).sum())
+    # the red shin pads turn yellow while their tactile is on (measured: red 10 -> 0 px, yellow 0 -> 50 px)
+    assert red(f[0]) > 5 and yellow(f[0]) == 0 and red(f[3]) == 0 and yellow(f[3]) > 20
+    assert green(f[0]) > 5  # the foot-force arrows
+    for suffix in (".gif", ".mp4"):
+        path = write_video(frames, str(tmp_path / f"walk{suffix}"), fps=10)
+        assert os.path.getsize(path) > 1000
+
+
+def test_render_rejects_bad_input(tmp_path):
+    rec = _fake_recording()
+    with pytest.raises(ValueError, match="env=3"):
+        render_env(ROBOT, PhysicsConfig(), _terrain(), rec, env=3, progress=False)
+    with pytest.raises(ValueError, match="record=True"):
+        render_env(ROBOT, PhysicsConfig(), _terrain(), types.SimpleNamespace(qpos_trace=None), progress=False)
+    with pytest.raises(ValueError, match="suffix"):
+        write_video(np.zeros((2, 16, 16, 3), np.uint8), str(tmp_path / "walk.avi"), fps=10)
+
+
+def test_render_command_writes_a_video_and_a_still(tmp_path):
+    from hexjax.cli import main
+    out, still = tmp_path / "walk.mp4", tmp_path / "still.png"
+    assert main(["render", "--terrain", "flat", "--controller", "gait", "--seconds", "0.4", "--width", "96",
+                 "--height", "72", "--out", str(out), "--still", str(still)]) == 0
+    assert out.stat().st_size > 1000 and still.stat().st_size > 500
