@@ -1,4 +1,4 @@
-"""The `hexjax` command: evaluate, experiment, dataset, predictor, bench, tune, plan, render, terrain."""
+"""The `hexjax` command: evaluate, experiment, dataset, predictor, bench, tune, plan, render, ppo, terrain."""
 
 from __future__ import annotations
 
@@ -283,6 +283,29 @@ def _cmd_render(a) -> int:
     return 0
 
 
+def _cmd_ppo(a) -> int:
+    import time
+
+    from hexjax.envs import HexapodGoalEnv, train_ppo
+    env = HexapodGoalEnv(robot=a.robot, terrain=a.terrain, goal_distance=a.goal)
+    t0 = time.perf_counter()
+    history, _, _ = train_ppo(env, num_timesteps=a.timesteps, num_envs=a.envs, episode_length=a.episode_length,
+                              num_evals=a.evals, seed=a.seed,
+                              progress=lambda step, m: print(f"  {int(step):>9,} env steps: eval episode reward "
+                                                             f"{float(m['eval/episode_reward']):.3f}", flush=True))
+    wall = time.perf_counter() - t0
+    first, last = history[0][1], history[-1][1]
+    print(f"Brax PPO on HexapodGoalEnv ({a.robot}, {a.terrain}, goal {a.goal:g} m): eval episode reward "
+          f"{first:.3f} -> {last:.3f} over {history[-1][0]:,} env steps in {wall:.0f} s")
+    if a.json:
+        import jax
+        _write_json(a.json, {"robot": a.robot, "terrain": a.terrain, "goal_m": a.goal, "timesteps": a.timesteps,
+                             "num_envs": a.envs, "episode_length": a.episode_length, "seed": a.seed,
+                             "history": [{"env_steps": s, "eval_episode_reward": r} for s, r in history],
+                             "wall_s": wall, "device": str(jax.devices()[0].platform)})
+    return 0
+
+
 def _cmd_terrain(a) -> int:
     import jax
     import matplotlib
@@ -419,6 +442,18 @@ def main(argv=None) -> int:
     rd.add_argument("--every", type=int, default=2, help="render every this many control steps (default 2)")
     rd.add_argument("--still", default="", help="also write the middle frame of the first env as a PNG here")
     rd.set_defaults(fn=_cmd_render)
+
+    pp = sub.add_parser("ppo", help="Brax PPO on the hexjax goal-reaching env (residual on the seed-000 gait)")
+    pp.add_argument("--robot", default="luneckas2020")
+    pp.add_argument("--terrain", default="flat")
+    pp.add_argument("--goal", type=float, default=1.0, help="goal distance ahead, m (default 1)")
+    pp.add_argument("--timesteps", type=int, default=60_000)
+    pp.add_argument("--envs", type=int, default=16)
+    pp.add_argument("--episode-length", type=int, default=100, help="control steps (20 ms each)")
+    pp.add_argument("--evals", type=int, default=4)
+    pp.add_argument("--seed", type=int, default=0)
+    pp.add_argument("--json", default="")
+    pp.set_defaults(fn=_cmd_ppo)
 
     a = p.parse_args(argv)
     try:

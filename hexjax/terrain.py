@@ -71,12 +71,12 @@ class TerrainSpec:
     def validate(self) -> None:
         if self.kind not in KINDS:
             raise ValueError(f"terrain.kind={self.kind!r}: choose one of {KINDS}")
-        if not (math.isfinite(self.taper) and 0 <= self.taper <= 0.5 * min(self.length, self.width)):
-            raise ValueError(f"terrain.taper={self.taper!r}: must be in [0, half the patch's shorter side]")
         for f in ("length", "width", "cell", "jitter"):
             v = getattr(self, f)
             if not (math.isfinite(v) and v >= 0) or (f != "jitter" and v == 0):
                 raise ValueError(f"terrain.{f}={v!r}: must be a finite number > 0")
+        if not (math.isfinite(self.taper) and 0 <= self.taper <= 0.5 * min(self.length, self.width)):
+            raise ValueError(f"terrain.taper={self.taper!r}: must be in [0, half the patch's shorter side]")
         for f in ("spacing_range", "height_range", "length_range", "width_range", "step_length_range",
                   "ditch_width_range", "ditch_gap_range"):
             lo, hi = getattr(self, f)
@@ -242,6 +242,12 @@ _GENERATORS = {"flat": _flat, "obstacles": _obstacle_field, "step": _step, "ditc
 @functools.partial(jax.jit, static_argnums=0)
 def _sample(spec: TerrainSpec, keys) -> Terrain:
     return jax.vmap(functools.partial(_GENERATORS[spec.kind], spec))(keys)
+
+
+def sample_one(spec: TerrainSpec, key) -> Terrain:
+    """One terrain of family `spec` (no batch axis), pure JAX: for use inside a traced function (an env's
+    reset). Check the spec first (`spec.validate()`); `sample` does that for batches."""
+    return _GENERATORS[spec.kind](spec, key)
 
 
 def sample(spec: TerrainSpec, key, batch: int) -> Terrain:
