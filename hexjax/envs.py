@@ -161,8 +161,9 @@ class HexapodGoalEnv(Env):
         hs = hs.replace(data=d_new, t=hs.t + self.dt, dist=dist)
         obs = self._obs(hs, m)
         done = (fell | reached).astype(jnp.float32)
-        metrics = {"progress": progress, "distance": dist, "reached": reached.astype(jnp.float32),
-                   "fell": fell.astype(jnp.float32)}
+        metrics = dict(state.metrics)  # keep keys wrappers added (Brax's evaluator adds 'reward')
+        metrics.update(progress=progress, distance=dist, reached=reached.astype(jnp.float32),
+                       fell=fell.astype(jnp.float32))
         return state.replace(pipeline_state=hs, obs=obs, reward=reward, done=done, metrics=metrics)
 
     def _obs(self, hs: HexState, m) -> jax.Array:
@@ -180,11 +181,24 @@ class HexapodGoalEnv(Env):
             hs.dist[None], jnp.stack([jnp.sin(phase), jnp.cos(phase)])])
 
 
+def _device_put_replicated(x, devices):
+    """`jax.device_put_replicated`, removed in jax 0.10 but still called by brax 0.14.2's PPO: each leaf stacked
+    once per device along a new leading axis, that axis sharded over `devices` (the replacement the JAX pmap
+    migration guide gives)."""
+    import numpy as np
+    from jax.sharding import Mesh, NamedSharding, PartitionSpec
+    devices = list(devices)
+    sharding = NamedSharding(Mesh(np.array(devices), ("d",)), PartitionSpec("d"))
+    return jax.tree_util.tree_map(lambda a: jax.device_put(jnp.stack([jnp.asarray(a)] * len(devices)), sharding), x)
+
+
 def train_ppo(env: HexapodGoalEnv, num_timesteps: int = 60_000, num_envs: int = 16, episode_length: int = 100,
               num_evals: int = 4, seed: int = 0, progress=None, **ppo_kwargs):
     """Brax PPO on `env`. Returns (eval history [(env steps, mean episode reward)], make_policy, params).
     Defaults are a smoke size for a 2-core CPU; raise num_timesteps / num_envs on a GPU."""
     from brax.training.agents.ppo import train as ppo
+    if "device_put_replicated" not in vars(jax):  # brax 0.14.2 on jax >= 0.10 (see _device_put_replicated)
+        jax.device_put_replicated = _device_put_replicated
     history = []
 
     def on_progress(step, metrics):
