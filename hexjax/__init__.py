@@ -12,13 +12,6 @@ if not _os.environ.get("HEXJAX_KEEP_XLA_FLAGS"):
     if "xla_cpu_enable_concurrency_optimized_scheduler" not in _flags:
         _os.environ["XLA_FLAGS"] = (_flags + " --xla_cpu_enable_concurrency_optimized_scheduler=false").strip()
 
-# MuJoCo chooses its OpenGL backend from MUJOCO_GL when it is first imported. With no display (a GPU node, CI,
-# a headless laptop session) GLFW cannot open a context, so `hexjax render` would fail; EGL renders offscreen
-# on NVIDIA drivers and on Mesa (software, llvmpipe). Only set when unset and headless; a missing EGL fails
-# only when something renders.
-if "MUJOCO_GL" not in _os.environ and not _os.environ.get("DISPLAY"):
-    _os.environ["MUJOCO_GL"] = "egl"
-
 from hexjax.control.cpg import CPG_GAITS, CPGController, CPGParams, CPGState  # noqa: E402
 from hexjax.control.gait import GAITS, GaitController, GaitParams  # noqa: E402
 from hexjax.control.tactile import TactileGaitController, TactileParams, TactileState  # noqa: E402

@@ -6,9 +6,11 @@ env's own terrain boxes are added to the robot's model as static geoms, foot for
 (length `force_scale` m per N), and a shin's tactile pad turns yellow while it is on. The camera follows the
 torso. `write_video` writes MP4 (imageio-ffmpeg) or GIF (Pillow) by the file's suffix.
 
-OpenGL: MuJoCo picks its backend from MUJOCO_GL when it is imported. Importing hexjax without a display
-sets MUJOCO_GL=egl when it is unset, which works headless on the GPU machine (NVIDIA EGL) and on a CPU
-machine with Mesa's EGL (software rendering, llvmpipe); set MUJOCO_GL=osmesa or glfw to choose otherwise.
+OpenGL: MuJoCo picks its backend from MUJOCO_GL when it is imported (GLFW when unset, which needs a
+display). With no display and MUJOCO_GL unset, `render_env` switches MuJoCo's renderer to EGL, which works
+headless on NVIDIA drivers and with Mesa's EGL (software rendering, llvmpipe, as on this project's CPU
+machine). It does not set MUJOCO_GL globally: on a machine without libEGL, importing mujoco with
+MUJOCO_GL=egl fails outright (seen on the GPU machine), which would break every hexjax command.
 """
 
 from __future__ import annotations
@@ -22,6 +24,19 @@ from hexjax.mjcf import PhysicsConfig, build_mjcf
 from hexjax.robot import LEG_NAMES, RobotSpec
 
 PAD_ON = np.array([1.0, 0.85, 0.1, 1.0])
+
+
+def _headless_gl() -> None:
+    """Use EGL for MuJoCo's offscreen renderer when there is no display and MUJOCO_GL is unset (module notes)."""
+    if os.environ.get("MUJOCO_GL") or os.environ.get("DISPLAY"):
+        return
+    from mujoco.rendering.classic import gl_context
+    try:
+        from mujoco.egl import GLContext
+    except Exception as err:  # a missing libEGL surfaces as AttributeError inside PyOpenGL, not ImportError
+        raise RuntimeError(f"no display, and MuJoCo's EGL backend does not load here ({err!r}); set MUJOCO_GL="
+                           "osmesa (needs libOSMesa) or run with a display") from err
+    gl_context.GLContext = GLContext
 
 
 def scene_model(robot: RobotSpec, physics: PhysicsConfig, box_pos, box_half, box_valid, ground_z: float):
@@ -65,6 +80,7 @@ def render_env(robot: RobotSpec, physics: PhysicsConfig, terrain, summary, env: 
         raise ValueError(f"env={env!r}: the rollout has envs 0..{n_env - 1}")
     if every < 1 or width < 16 or height < 16:
         raise ValueError(f"every={every!r}, width={width!r}, height={height!r}: need every >= 1 and a frame >= 16 px")
+    _headless_gl()
     m = scene_model(robot, physics, terrain.box_pos[env], terrain.box_half[env], terrain.box_valid[env],
                     float(np.asarray(terrain.ground_z)[env]))
     d = mujoco.MjData(m)
