@@ -96,7 +96,8 @@ def _cmd_zhao_mjx(a) -> int:
           f"{res['straight_line_blocked']}), {c['duration_s']:g} s{', planner BLIND to the obstacles' if c['blind'] else ''}")
     print(f"kinematic planner: success {100 * k['success_rate']:.1f} %, collisions {k['collisions']}")
     rate = m["success_rate_where_kinematic_succeeds"]
-    print(f"MJX closed loop: success {100 * rate:.1f} % where the kinematic planner succeeds "
+    rate = "n/a" if rate is None else f"{100 * rate:.1f} %"
+    print(f"MJX closed loop: success {rate} where the kinematic planner succeeds "
           f"({100 * m['success_rate_all']:.1f} % of all); reached {m['reached']}, touched {m['touched']}, fell "
           f"{m['fell']}, NaN {m['nan']}; final distance median {100 * m['final_distance_m']['median']:.1f} cm; "
           f"robot-circle clearance min {100 * m['circle_clearance_m']['min']:.1f} cm")

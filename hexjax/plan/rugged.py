@@ -295,7 +295,9 @@ class SupportPlanController:
         marg = jax.vmap(lambda q: jnp.minimum(jnp.min(side_distances(q, tri_now, ones)[0]),
                                               jnp.min(side_distances(q, tri_next, ones)[0])))(cand)
         need = jnp.minimum(params.delta_s, 0.8 * r2)
-        pick = jnp.argmax(marg >= need - 1e-6)  # the last candidate is O_2 itself, which always qualifies
+        # O_2 (the last candidate) qualifies whenever the triangles overlap; when they do not, no point does
+        # and argmax picks the first, the nominal point
+        pick = jnp.argmax(marg >= need - 1e-6)
         centre, margin = cand[pick], marg[pick]
         # Sect. 2.2.1: the torso centre `height` above the plane of the footholds (the ground under the feet)
         plane = foothold_plane(land.at[:, 2].add(-self.robot.foot_radius), jnp.ones(N_LEGS, bool))
@@ -316,8 +318,8 @@ class SupportPlanController:
         return body_to_leg(self.robot, self._to_body(pose, p_world))
 
     def _joints(self, pose, p_world):
-        q, ok = leg_ik(self.robot, body_to_leg(self.robot, self._to_body(pose, p_world)))
-        return q, ok
+        """(joint angles (6, 3), reachable (6,)) for world foot targets (6, 3) at torso pose (6,)."""
+        return leg_ik(self.robot, self._leg_frame(pose, p_world))
 
     def step(self, params: SupportParams, state: SupportState, obs):
         t = state.k * self.dt
