@@ -191,6 +191,18 @@ def neutral_feet_body(spec: RobotSpec) -> np.ndarray:
 
 
 # Kinematics (JAX) -------------------------------------------------------------------------------
+def quat_yaw(q):
+    """Heading (rad) of a torso quaternion (w, x, y, z): the yaw of its z-y-x Euler angles."""
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    return jnp.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+
+
+def wrap_angle(a):
+    """a wrapped to (-pi, pi]."""
+    return jnp.arctan2(jnp.sin(a), jnp.cos(a))
+
+
+
 def leg_fk(spec: RobotSpec, q):
     """Foot centre in the leg frame from joint angles. q: (..., 3) rad -> (..., 3) m."""
     q1, q2, q3 = q[..., 0], q[..., 1], q[..., 2]

@@ -43,7 +43,7 @@ from hexjax.control.gait import GaitController, GaitParams, GaitState, PatternCl
 from hexjax.plan import avoid
 from hexjax.plan.avoid import AvoidConfig, AvoidParams
 from hexjax.plan.fields import Fields, dist_to_polyline, random_fields
-from hexjax.robot import RobotSpec, get_robot, hip_positions, neutral_feet_body
+from hexjax.robot import RobotSpec, get_robot, hip_positions, neutral_feet_body, quat_yaw, wrap_angle
 from hexjax.sim.rollout import RolloutConfig, rollout
 from hexjax.terrain import Terrain
 
@@ -83,15 +83,6 @@ class AvoidGaitState:
     plans: jax.Array
     held: jax.Array
     chosen: jax.Array
-
-
-def _wrap(a):
-    return jnp.arctan2(jnp.sin(a), jnp.cos(a))
-
-
-def _yaw(q):
-    w, x, y, z = q[0], q[1], q[2], q[3]
-    return jnp.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
 
 
 def footprint_radius(robot: RobotSpec, step_length: float) -> float:
@@ -151,10 +142,10 @@ class AvoidGaitController(PatternClock):
 
     def step(self, params: AvoidGaitParams, state: AvoidGaitState, obs):
         cycle = params.gait.swing_time * self.pattern.period
-        pos, yaw = obs.torso_pos[:2], _yaw(obs.torso_quat)
+        pos, yaw = obs.torso_pos[:2], quat_yaw(obs.torso_quat)
         t = state.k * self.dt
         u = jnp.clip((t - state.t_switch) / cycle, 0.0, 1.0)
-        heading = state.heading_from + _wrap(state.heading_to - state.heading_from) * u
+        heading = state.heading_from + wrap_angle(state.heading_to - state.heading_from) * u
         scale = state.scale_from + (state.scale_to - state.scale_from) * u
 
         p = params.avoid

@@ -52,7 +52,8 @@ from hexjax.mjcf import PhysicsConfig
 from hexjax.plan.motion import TRIPODS
 from hexjax.plan.support import (clamped_spline, foothold_plane, overlap_center, plane_pitch_roll, side_distances,
                                  torso_pitch_roll)
-from hexjax.robot import N_LEGS, RobotSpec, body_to_leg, get_robot, leg_ik, neutral_feet_body
+from hexjax.robot import (N_LEGS, RobotSpec, body_to_leg, get_robot, leg_ik, neutral_feet_body, quat_yaw,
+                          wrap_angle)
 from hexjax.sim.rollout import RolloutConfig, rollout
 from hexjax.terrain import Terrain, get_terrain, sample
 
@@ -130,15 +131,6 @@ def rotation(yaw, pitch, roll):
     ry = jnp.array([[cp, 0.0, -sp], [0.0, 1.0, 0.0], [sp, 0.0, cp]])  # Ry(-pitch)
     rx = jnp.array([[1.0, 0.0, 0.0], [0.0, cr, -sr], [0.0, sr, cr]])
     return rz @ ry @ rx
-
-
-def _yaw(q):
-    w, x, y, z = q[0], q[1], q[2], q[3]
-    return jnp.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
-
-
-def _wrap(a):
-    return jnp.arctan2(jnp.sin(a), jnp.cos(a))
 
 
 def _smooth(u):
@@ -233,7 +225,7 @@ class SupportPlanController:
     def _start(self, params: SupportParams, obs):
         """Commanded pose and feet before the first phase: the neutral stance at the measured x, y, yaw (the
         joint targets the robot settled with)."""
-        yaw = _yaw(obs.torso_quat)
+        yaw = quat_yaw(obs.torso_quat)
         pose = jnp.stack([obs.torso_pos[0], obs.torso_pos[1], params.height + 0.0 * yaw, yaw, 0.0 * yaw, 0.0 * yaw])
         feet = self._to_world(pose, jnp.asarray(neutral_feet_body(self.robot), jnp.float32))
         return pose, feet
@@ -255,8 +247,8 @@ class SupportPlanController:
         pose = jnp.where(first, pose0, st.torso_to)
         path = jnp.where(first, pose0[:2], st.path)
         # re-anchor: the rigid horizontal shift and turn taking the commanded (x, y, yaw) to the measured
-        yaw_m = _yaw(obs.torso_quat)
-        dyaw = _wrap(yaw_m - pose[3])
+        yaw_m = quat_yaw(obs.torso_quat)
+        dyaw = wrap_angle(yaw_m - pose[3])
         c, s = jnp.cos(dyaw), jnp.sin(dyaw)
         rot = jnp.array([[c, -s], [s, c]])
         move = lambda xy: (xy - pose[:2]) @ rot.T + obs.torso_pos[:2]
@@ -330,7 +322,7 @@ class SupportPlanController:
 
         def pose_at(v):
             d = st.torso_to - st.torso_from
-            d = d.at[3].set(_wrap(d[3]))
+            d = d.at[3].set(wrap_angle(d[3]))
             return st.torso_from + d * _smooth(v)
 
         pose = pose_at(u)

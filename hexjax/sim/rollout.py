@@ -16,7 +16,7 @@ from flax import struct
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
 from hexjax.mjcf import PhysicsConfig
-from hexjax.robot import RobotSpec
+from hexjax.robot import RobotSpec, quat_yaw, wrap_angle
 from hexjax.sim.model import SensorConfig, assign_slots, env_model, mjx, read_obs, reversible_solver, sim_model
 from hexjax.terrain import Terrain
 
@@ -174,11 +174,6 @@ class Summary:
     tactile_trace: Optional[jax.Array] = None
 
 
-def _yaw(q):
-    w, x, y, z = q[0], q[1], q[2], q[3]
-    return jnp.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
-
-
 def _tilt(q):
     """Angle between the torso z axis and world z, rad."""
     x, y = q[1], q[2]
@@ -252,9 +247,9 @@ def _compiled(robot: RobotSpec, physics: PhysicsConfig, sensors: SensorConfig, c
             t_now = (i + 1 - n_settle) * controller.dt
             dxy = d_new.qpos[:2] - d.qpos[:2]
             step_xy = jnp.sqrt(jnp.sum(dxy * dxy) + 1e-18)  # offset keeps the derivative finite at rest
-            pose = jnp.stack([d_new.qpos[0], d_new.qpos[1], _yaw(q)])
-            yaw_step = pose[2] - _yaw(d.qpos[3:7])
-            dyaw = jnp.arctan2(jnp.sin(yaw_step), jnp.cos(yaw_step))
+            pose = jnp.stack([d_new.qpos[0], d_new.qpos[1], quat_yaw(q)])
+            yaw_step = pose[2] - quat_yaw(d.qpos[3:7])
+            dyaw = wrap_angle(yaw_step)
             acc = dict(
                 start_pose=jnp.where(i == n_settle - 1, pose, acc["start_pose"]),
                 fell=acc["fell"] | fallen_now,
@@ -268,7 +263,7 @@ def _compiled(robot: RobotSpec, physics: PhysicsConfig, sensors: SensorConfig, c
                 tactile_steps=acc["tactile_steps"] + (walking & obs.tactile).astype(jnp.int32),
             )
             if cfg.record:
-                out = dict(pose=jnp.concatenate([d_new.qpos[:3], _yaw(q)[None]]),
+                out = dict(pose=jnp.concatenate([d_new.qpos[:3], quat_yaw(q)[None]]),
                            feet=d_new.site_xpos[foot_sites],
                            ctrl=controller.trace(cstate, obs) if has_trace else None,
                            qpos=d_new.qpos, force=obs.foot_force, tactile=obs.tactile)
@@ -286,7 +281,7 @@ def _compiled(robot: RobotSpec, physics: PhysicsConfig, sensors: SensorConfig, c
         d0 = mjx.forward(m_shared, d0)
         body = jax.checkpoint(control_step, prevent_cse=False) if cfg.remat else control_step
         (d, cstate, acc), rec = jax.lax.scan(body, (d0, cstate0, acc0), jnp.arange(n_total))
-        end = jnp.stack([d.qpos[0], d.qpos[1], _yaw(d.qpos[3:7])])
+        end = jnp.stack([d.qpos[0], d.qpos[1], quat_yaw(d.qpos[3:7])])
         extra = {}
         if cfg.record:
             rec = jax.tree_util.tree_map(lambda a: a[n_settle:], rec)
