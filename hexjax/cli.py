@@ -222,7 +222,7 @@ def _cmd_bench(a) -> int:
     from hexjax.analysis.bench import bench, format_bench
     batches = [int(x) for x in a.batches.split(",")]
     res = bench(robot=a.robot, batches=batches, sim_seconds=a.seconds, terrains=a.terrains.split(","),
-                controller=a.controller)
+                controller=a.controller, backend=a.backend, repeats=a.repeats, nthread=a.nthread, devices=a.devices)
     print(format_bench(res))
     if a.json:
         _write_json(a.json, res)
@@ -396,6 +396,14 @@ def main(argv=None) -> int:
                    help="comma list of gait (seed-000 open loop), cpg (Yu 2019), tactile (seed-000 with the tactile "
                         "switch), avoid (seed-000 steered by the Zhao 2018 planner); 'both' = gait,cpg. Rows other than gait "
                         "get their cost against gait")
+    b.add_argument("--backend", default="mjx",
+                   help="comma list of physics backends: mjx (MJX, JAX implementation; default), warp (MJX with MuJoCo "
+                        "Warp kernels; needs warp-lang), c (MuJoCo C on all host cores)")
+    b.add_argument("--nthread", type=int, default=0, help="MuJoCo C threads for --backend c (default: all cores)")
+    b.add_argument("--devices", type=int, default=1,
+                   help="shard each batch over this many devices (backend mjx); for scaling, compare B on 1 device "
+                        "with 2B on 2")
+    b.add_argument("--repeats", type=int, default=2, help="timed calls per row after the first; the best is kept (0: time the first call, compile included)")
     b.add_argument("--json", default="", help="write the numbers here")
     b.set_defaults(fn=_cmd_bench)
 

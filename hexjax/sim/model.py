@@ -20,7 +20,7 @@ import mujoco
 import numpy as np
 from flax import struct
 
-from hexjax.mjcf import PARKED_Z, PhysicsConfig, build_mjcf
+from hexjax.mjcf import PARKED_Z, SENSOR_MATCHES, PhysicsConfig, build_mjcf, sensor_layout
 from hexjax.robot import LEG_NAMES, N_LEGS, RobotSpec, neutral_feet_body
 from hexjax.terrain import Terrain
 
@@ -62,14 +62,34 @@ class SensorConfig:
     tactile_threshold: float = 0.3  # N
 
 
-class SimModel:
-    """MuJoCo / MJX models of one robot with terrain slots, plus static index maps. Built once on the host."""
+IMPLS = ("jax", "warp")
 
-    def __init__(self, robot: RobotSpec, physics: PhysicsConfig):
-        self.robot, self.physics = robot, physics
-        self.xml = build_mjcf(robot, physics)
+
+class SimModel:
+    """MuJoCo / MJX models of one robot with terrain slots, plus static index maps. Built once on the host.
+
+    impl: MJX's implementation, 'jax' (default; differentiable, any device) or 'warp' (MuJoCo Warp kernels
+    through MJX, CUDA GPUs or CPU; needs the warp-lang package, forward only). The 'warp' model also declares
+    contact sensors, and the rollout reads its observations from them (`obs_from_sensordata`)."""
+
+    def __init__(self, robot: RobotSpec, physics: PhysicsConfig, impl: str = "jax"):
+        if impl not in IMPLS:
+            raise ValueError(f"impl={impl!r}: use one of {IMPLS}")
+        self.robot, self.physics, self.impl = robot, physics, impl
+        self.xml = build_mjcf(robot, physics, contact_sensors=impl == "warp")
         self.mj_model = mujoco.MjModel.from_xml_string(self.xml)
-        self.mjx_model = mjx.put_model(self.mj_model)
+        if impl == "warp":
+            from mujoco.mjx import warp as mjx_warp
+            if not mjx_warp.WARP_INSTALLED:
+                raise RuntimeError("impl='warp' needs the warp-lang package: pip install 'hexjax[warp]'")
+            self.mjx_model = mjx.put_model(self.mj_model, impl="warp")
+            # hexjax runs a fixed, small number of Newton iterations on purpose (PhysicsConfig): keep Warp's
+            # overflow messages for contacts and rows, drop the one for the iteration limit
+            from mujoco.mjx.third_party.mujoco_warp._src.types import OverflowType
+            warn = int(self.mjx_model.opt._impl.warn_overflow) & ~int(OverflowType.ITERATIONS)
+            self.mjx_model = self.mjx_model.tree_replace({"opt._impl.warn_overflow": warn})
+        else:
+            self.mjx_model = mjx.put_model(self.mj_model)
         m = self.mj_model
         gid = lambda n: mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, n)
         self.ground_geom = gid("ground")
@@ -85,11 +105,15 @@ class SimModel:
         key = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_KEY, "stance")
         self.qpos0 = np.array(m.key_qpos[key])
         self.ctrl0 = np.array(m.key_ctrl[key])
+        self.n_pairs = m.npair
         # Static contact -> (foot, pad) membership. MJX lays contacts out by pair group, each group
         # repeated by its collision function's contact count; that order is fixed at trace time, so
         # the map holds for every step of every env (tests/test_sim.py checks it against mjx.forward).
-        d = mjx.make_data(m)
-        geoms = contact_geoms(self.mjx_model, d)
+        # Computed on the JAX implementation also for 'warp', whose per-world contact and row counts it gives.
+        # (MJX's JAX implementation lacks the netforce contact sensor: the map is built on the sensorless model)
+        m_jax = m if impl == "jax" else mujoco.MjModel.from_xml_string(build_mjcf(robot, physics))
+        d = mjx.make_data(m_jax, impl="jax")
+        geoms = contact_geoms(self.mjx_model if impl == "jax" else mjx.put_model(m_jax, impl="jax"), d)
         self.ncon = geoms.shape[0]
         self.contact_foot = np.stack([(geoms == g).any(1) for g in self.foot_geoms], 1).astype(np.float32)
         self.contact_pad = np.stack([(geoms == g).any(1) for g in self.pad_geoms], 1).astype(np.float32)
@@ -101,15 +125,23 @@ class SimModel:
         dims = np.asarray(d._impl.contact.dim) if hasattr(d._impl.contact, "dim") else None
         if dims is not None and not np.all(dims == 3):
             raise RuntimeError("hexjax expects condim 3 on every contact pair")
-        self.n_pairs = m.npair
+        self.nefc = int(d._impl.efc_J.shape[0])
 
-    def init_data(self, torso_xy_yaw):
-        """mjx.Data in the neutral stance at (x, y, yaw) (3,) on flat ground."""
+    def make_data(self, batch: int = 1):
+        """An empty mjx.Data. For 'warp' its contact pool is shared by the worlds of a vmap of size `batch`,
+        so it is sized for all of them (the JAX implementation's fixed per-world contact count x batch)."""
+        if self.impl == "warp":
+            return mjx.make_data(self.mj_model, impl="warp", naconmax=max(1, self.ncon) * batch,
+                                 njmax=max(1, self.nefc))
+        return mjx.make_data(self.mjx_model)
+
+    def init_data(self, torso_xy_yaw, template=None):
+        """mjx.Data in the neutral stance at (x, y, yaw) (3,) on flat ground (`template`: from `make_data`)."""
         x, y, yaw = torso_xy_yaw[0], torso_xy_yaw[1], torso_xy_yaw[2]
         qpos = jnp.asarray(self.qpos0)
         quat = jnp.stack([jnp.cos(yaw / 2), 0.0 * yaw, 0.0 * yaw, jnp.sin(yaw / 2)])
         qpos = qpos.at[0].set(x).at[1].set(y).at[3:7].set(quat)
-        d = mjx.make_data(self.mjx_model)
+        d = self.make_data() if template is None else template
         return d.replace(qpos=qpos, ctrl=jnp.asarray(self.ctrl0))
 
 
@@ -122,9 +154,9 @@ def contact_geoms(mx, d) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=16)
-def sim_model(robot: RobotSpec, physics: PhysicsConfig) -> SimModel:
+def sim_model(robot: RobotSpec, physics: PhysicsConfig, impl: str = "jax") -> SimModel:
     """Cached `SimModel` (specs are frozen dataclasses, so they key the cache)."""
-    return SimModel(robot, physics)
+    return SimModel(robot, physics, impl)
 
 
 def _box_xy_distance(points, terrain: Terrain):
@@ -183,7 +215,24 @@ def env_model(sm: SimModel, terrain: Terrain, slot_pos, slot_size, base=None):
     if ids.size:
         geom_pos = geom_pos.at[ids].set(slot_pos)
         geom_size = geom_size.at[ids].set(slot_size)
+    if sm.impl == "warp" and ids.size:
+        # MuJoCo Warp culls pairs by each geom's bounding sphere and box, compiled for the placeholder slot:
+        # they follow the slot's size (a box's bounding box is centred on it, half sizes = its half sizes)
+        rbound = m.geom_rbound.at[ids].set(jnp.linalg.norm(slot_size, axis=-1))
+        aabb = m.geom_aabb.at[ids, 0].set(0.0).at[ids, 1].set(slot_size)
+        return m.replace(geom_pos=geom_pos, geom_size=geom_size, geom_rbound=rbound, geom_aabb=aabb)
     return m.replace(geom_pos=geom_pos, geom_size=geom_size)
+
+
+def place_static_geoms(sm: SimModel, d, terrain: Terrain, slot_pos):
+    """MuJoCo Warp computes world-frame poses of the world body's geoms once, in make_data, and never again,
+    so moving a slot (or the ground) through the model's geom_pos does not move it there: its geom_xpos is
+    set here as well (world geoms keep the identity orientation). Needed with impl='warp' only."""
+    ids = slot_geom_ids(sm)
+    xpos = d.geom_xpos.at[sm.ground_geom, 2].set(terrain.ground_z)
+    if ids.size:
+        xpos = xpos.at[ids].set(slot_pos)
+    return d.replace(geom_xpos=xpos)
 
 
 def batch_model(sm: SimModel, terrain: Terrain):
@@ -216,6 +265,27 @@ def read_obs(sm: SimModel, sensors: SensorConfig, m, d) -> Obs:
         qpos=d.qpos[7:], qvel=d.qvel[6:], torso_pos=d.qpos[:3], torso_quat=d.qpos[3:7],
         foot_force=foot_force, foot_contact=foot_normal > sensors.contact_threshold,
         tactile_force=pad_normal, tactile=pad_normal > sensors.tactile_threshold, time=d.time)
+
+
+def obs_from_sensordata(sensors: SensorConfig, qpos, qvel, sensordata, time) -> Obs:
+    """`Obs` of one env from MuJoCo's own sensors (a model built with `contact_sensors=True`): what the
+    MuJoCo Warp and MuJoCo C backends read. Foot force: the net force on the foot (world frame); normal forces:
+    the sum of the first (normal) component over the foot's / pad's matched contacts. Same quantities as
+    `read_obs`, which decodes the JAX solver's rows directly. Works on numpy or jax arrays."""
+    lay = sensor_layout()
+    legs = sensordata[..., :lay["actuator"]].reshape(sensordata.shape[:-1] + (N_LEGS, lay["per_leg"]))
+    foot_force = legs[..., 0:3]
+    each = lambda a: legs[..., a:a + 3 * SENSOR_MATCHES].reshape(legs.shape[:-1] + (SENSOR_MATCHES, 3))[..., 0]
+    foot_normal = each(lay["foot_each"]).sum(-1)
+    pad_normal = each(lay["pad_each"]).sum(-1)
+    return Obs(qpos=qpos[..., 7:], qvel=qvel[..., 6:], torso_pos=qpos[..., :3], torso_quat=qpos[..., 3:7],
+               foot_force=foot_force, foot_contact=foot_normal > sensors.contact_threshold,
+               tactile_force=pad_normal, tactile=pad_normal > sensors.tactile_threshold, time=time)
+
+
+def actuator_forces(sensordata):
+    """The 18 actuator forces from sensordata (contact_sensors=True models)."""
+    return sensordata[..., sensor_layout()["actuator"]:]
 
 
 class _ScanLax:

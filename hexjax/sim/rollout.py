@@ -17,7 +17,8 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
 from hexjax.mjcf import PhysicsConfig
 from hexjax.robot import RobotSpec, quat_yaw, wrap_angle
-from hexjax.sim.model import SensorConfig, assign_slots, env_model, mjx, read_obs, reversible_solver, sim_model
+from hexjax.sim.model import SensorConfig, assign_slots, env_model, mjx, obs_from_sensordata, \
+    place_static_geoms, read_obs, reversible_solver, sim_model
 from hexjax.terrain import Terrain
 
 
@@ -189,10 +190,19 @@ def _substeps(physics: PhysicsConfig, ctrl_dt: float) -> int:
     return int(round(n))
 
 
+BACKENDS = ("mjx", "warp", "c")
+
+# mjx.Data fields that hold one env's state between control steps; with the Warp implementation only these
+# are restored when a step goes non-finite (its contact pool is shared by all envs, so a per-env select
+# over the whole Data is not possible; the rest is recomputed from them by the next step)
+_STATE_FIELDS = ("qpos", "qvel", "act", "time", "qacc_warmstart")
+
+
 @functools.lru_cache(maxsize=32)
 def _compiled(robot: RobotSpec, physics: PhysicsConfig, sensors: SensorConfig, controller: Any,
-              cfg: RolloutConfig, n_ctrl: int, params_batched: bool):
-    sm = sim_model(robot, physics)
+              cfg: RolloutConfig, n_ctrl: int, params_batched: bool, impl: str = "jax"):
+    sm = sim_model(robot, physics, impl)
+    warp = impl == "warp"
     n_sub = _substeps(physics, controller.dt)
     n_settle = int(round(cfg.settle_time / controller.dt))
     n_total = n_settle + n_ctrl
@@ -202,10 +212,15 @@ def _compiled(robot: RobotSpec, physics: PhysicsConfig, sensors: SensorConfig, c
     foot_sites = jnp.asarray(sm.foot_sites)
     dt = physics.timestep
 
-    def single(m_shared, params, terrain: Terrain, key):
+    def observe(m, d):
+        if warp:
+            return obs_from_sensordata(sensors, d.qpos, d.qvel, d.sensordata, d.time)
+        return read_obs(sm, sensors, m, d)
+
+    def single(m_shared, params, terrain: Terrain, key, d_template):
         k_yaw, k_ctrl = jax.random.split(key)
         yaw0 = jax.random.uniform(k_yaw, (), minval=-cfg.yaw_noise, maxval=cfg.yaw_noise)
-        d0 = sm.init_data(jnp.stack([0.0, 0.0, yaw0]))
+        d0 = sm.init_data(jnp.stack([0.0, 0.0, yaw0]), d_template)
         cstate0 = controller.init(params, k_ctrl)
         # a controller may ask to settle in its own first posture (the CPG starts mid-stride)
         ctrl0 = controller.initial_action(params) if has_init_action else ctrl0_default
@@ -223,7 +238,9 @@ def _compiled(robot: RobotSpec, physics: PhysicsConfig, sensors: SensorConfig, c
             foot_xy = d.site_xpos[foot_sites, :2]
             slot_pos, slot_size = assign_slots(sm, terrain, foot_xy, d.qpos[:2])
             m = env_model(sm, terrain, slot_pos, slot_size, base=m_shared)
-            obs = read_obs(sm, sensors, m, d)
+            if warp:
+                d = place_static_geoms(sm, d, terrain, slot_pos)
+            obs = observe(m, d)
             new_cstate, action = controller.step(params, cstate, obs)
             walking = i >= n_settle
             action = jnp.where(walking, action, ctrl0)
@@ -239,7 +256,10 @@ def _compiled(robot: RobotSpec, physics: PhysicsConfig, sensors: SensorConfig, c
 
             d_new, power = jax.lax.scan(sub, d, None, length=n_sub)
             finite = jnp.all(jnp.isfinite(d_new.qpos)) & jnp.all(jnp.isfinite(d_new.qvel))
-            d_new = jax.tree_util.tree_map(lambda a, b: jnp.where(finite, a, b), d_new, d)
+            if warp:
+                d_new = d_new.replace(**{f: jnp.where(finite, getattr(d_new, f), getattr(d, f)) for f in _STATE_FIELDS})
+            else:
+                d_new = jax.tree_util.tree_map(lambda a, b: jnp.where(finite, a, b), d_new, d)
             q = d_new.qpos[3:7]
             height = d_new.qpos[2] - terrain.ground_z
             tilt = _tilt(q)
@@ -289,12 +309,12 @@ def _compiled(robot: RobotSpec, physics: PhysicsConfig, sensors: SensorConfig, c
                          force_trace=rec["force"], tactile_trace=rec["tactile"])
         return Summary(end_pose=end, final_state=cstate, **extra, **acc)
 
-    def batched(m_shared, params, terrain, keys):
-        run = jax.vmap(single, in_axes=(None, 0 if params_batched else None, 0, 0))
+    def batched(m_shared, params, terrain, keys, d_template=None):
+        run = jax.vmap(single, in_axes=(None, 0 if params_batched else None, 0, 0, None))
         if cfg.reversible_solver:
             with reversible_solver(physics.iterations):
-                return run(m_shared, params, terrain, keys)
-        return run(m_shared, params, terrain, keys)
+                return run(m_shared, params, terrain, keys, d_template)
+        return run(m_shared, params, terrain, keys, d_template)
 
     return sm, _AotFunction(jax.jit(batched))
 
@@ -329,8 +349,16 @@ class _AotFunction:
 def rollout(robot: RobotSpec, terrain: Terrain, controller, params, duration: float, key, *,
             physics: PhysicsConfig = PhysicsConfig(), sensors: SensorConfig = SensorConfig(),
             config: RolloutConfig = RolloutConfig(), params_batched: bool = False,
-            mesh: Optional[Mesh] = None) -> Summary:
+            mesh: Optional[Mesh] = None, backend: str = "mjx", nthread: Optional[int] = None) -> Summary:
     """Roll out a batch of hexapods, one per terrain of `terrain` (leading axis B).
+
+    backend: which engine steps the physics; the controller, sensors and summary are the same.
+      'mjx'  MJX's JAX implementation (default): any device, differentiable (`rollout_function`), shardable.
+      'warp' MJX with MuJoCo Warp kernels (`impl='warp'`; CUDA GPU or CPU; needs warp-lang). Forward only;
+             observations come from MuJoCo contact sensors in the model.
+      'c'    MuJoCo C on `nthread` host threads (default: all cores) through `mujoco.rollout`, every terrain
+             box a geom found by MuJoCo's broadphase; the controller runs in JAX between control steps
+             (`hexjax.sim.mujoco_c`). Forward only; no traces (record=False).
 
     robot: RobotSpec; terrain: batched Terrain from `hexjax.terrain.sample`; controller: an object
     following `hexjax.control.base.Controller`; params: its params pytree (shared, or batched with
@@ -339,6 +367,14 @@ def rollout(robot: RobotSpec, terrain: Terrain, controller, params, duration: fl
     axis named 'batch' to shard the envs over several devices. Returns a `Summary` with leading axis B.
     All inputs are checked on the host before anything is traced."""
     robot.validate(); physics.validate(); config.validate()
+    if backend not in BACKENDS:
+        raise ValueError(f"backend={backend!r}: use one of {BACKENDS}")
+    if backend != "mjx" and (config.reversible_solver or config.grad_window or config.grad_clip is not None
+                             or config.remat):
+        raise ValueError(f"backend={backend!r} is forward only: the rollout config's gradient options "
+                         f"(reversible_solver, grad_window, grad_clip, remat) need backend='mjx'")
+    if backend != "mjx" and mesh is not None:
+        raise ValueError(f"backend={backend!r}: a device mesh is supported with backend='mjx' only")
     if not hasattr(terrain, "box_pos") or np.ndim(terrain.box_pos) != 3:
         raise ValueError("terrain: expected a batched Terrain (box_pos of shape (B, M, 3)); use terrain.sample")
     b = int(terrain.box_pos.shape[0])
@@ -349,7 +385,14 @@ def rollout(robot: RobotSpec, terrain: Terrain, controller, params, duration: fl
     if hasattr(controller, "validate_params"):
         controller.validate_params(params)
     n_ctrl = int(math.ceil(duration / controller.dt - 1e-9))
-    sm, fn = _compiled(robot, physics, sensors, controller, config, n_ctrl, params_batched)
+    if backend == "c":
+        from hexjax.sim.mujoco_c import rollout_c
+        out = rollout_c(robot, terrain, controller, params, n_ctrl, key, physics=physics, sensors=sensors,
+                        config=config, params_batched=params_batched, nthread=nthread)
+        rollout.last_compile_s = rollout_c.last_compile_s
+        return out
+    impl = "warp" if backend == "warp" else "jax"
+    sm, fn = _compiled(robot, physics, sensors, controller, config, n_ctrl, params_batched, impl)
     keys = jax.random.split(key, b)
     if mesh is not None:
         if "batch" not in mesh.axis_names:
@@ -364,7 +407,7 @@ def rollout(robot: RobotSpec, terrain: Terrain, controller, params, duration: fl
         model = jax.device_put(sm.mjx_model, replicated)
     else:
         model = sm.mjx_model
-    out = fn(model, params, terrain, keys)
+    out = fn(model, params, terrain, keys, sm.make_data(b)) if impl == "warp" else fn(model, params, terrain, keys)
     rollout.last_compile_s = fn.last_compile_s
     return out
 

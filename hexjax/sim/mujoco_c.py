@@ -1,0 +1,260 @@
+"""MuJoCo C backend of the rollout: the same robot, terrain, controller and summary as the MJX rollout, with
+the physics stepped by MuJoCo C on all host cores (`mujoco.rollout`, one thread pool).
+
+How it differs from the MJX path, and why:
+- Terrain. MJX checks a fixed list of geom pairs, so hexjax moves a few slot boxes under each foot every
+  control step. MuJoCo C has a broadphase, so here every terrain box is a geom of its own (`terrain_<j>`,
+  `build_mjcf(..., terrain_boxes=M)`) and each env gets its own `MjModel` with its boxes in place. The contact
+  parameters are the slot pairs' (condim 3, same friction, default solref / solimp).
+- Sensors. Observations come from MuJoCo contact sensors declared in the model
+  (`hexjax.sim.model.obs_from_sensordata`): net foot force in the world frame, summed normal force per foot and
+  per pad, as `read_obs` computes from MJX's solver rows.
+- The controller runs as JAX on the host between control steps, vmapped over the envs of a chunk; the physics
+  of one control step (dt / timestep substeps) is one `Rollout.rollout` call over the chunk.
+- Forward only (no gradients), no per-step traces. At the very first control step the sensors read zero (no
+  step has run yet); with the default settle time that step is a settling step, whose action is fixed.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+import os
+import time
+from typing import Optional
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from mujoco import rollout as mj_rollout
+
+from hexjax.mjcf import PARKED_Z, PhysicsConfig, build_mjcf, sensor_layout
+from hexjax.robot import RobotSpec
+from hexjax.sim.model import SensorConfig, obs_from_sensordata
+
+_FULL = mujoco.mjtState.mjSTATE_FULLPHYSICS
+
+
+@dataclasses.dataclass
+class _Template:
+    model: mujoco.MjModel
+    box_geoms: np.ndarray
+    box_bodies: np.ndarray
+    box_bvh: np.ndarray
+    ground_geom: int
+    qpos0: np.ndarray
+    ctrl0: np.ndarray
+    nstate: int
+    pool: list  # MjModel copies reused across calls (filling one costs a few us, copying one ~0.3 ms)
+
+
+@functools.lru_cache(maxsize=4)
+def _template(robot: RobotSpec, physics: PhysicsConfig, n_boxes: int) -> _Template:
+    phys = dataclasses.replace(physics, slots_per_leg=0, torso_slots=0)
+    m = mujoco.MjModel.from_xml_string(build_mjcf(robot, phys, contact_sensors=True, terrain_boxes=n_boxes))
+    gid = lambda n: mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, n)
+    key = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_KEY, "stance")
+    assert m.nsensordata == sensor_layout()["size"]
+    bodies = np.array([mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, f"terrain_{j}") for j in range(n_boxes)], dtype=int)
+    return _Template(model=m, box_geoms=np.array([gid(f"terrain_{j}") for j in range(n_boxes)], dtype=int),
+                     box_bodies=bodies, box_bvh=np.asarray(m.body_bvhadr[bodies], dtype=int),
+                     ground_geom=gid("ground"), qpos0=np.array(m.key_qpos[key]), ctrl0=np.array(m.key_ctrl[key]),
+                     nstate=mujoco.mj_stateSize(m, _FULL), pool=[])
+
+
+def _models(tp: _Template, box_pos, box_half, box_valid, ground_z):
+    """One MjModel per env (from the reused pool) with that env's terrain boxes and ground height."""
+    n = box_pos.shape[0]
+    while len(tp.pool) < n:
+        tp.pool.append(mujoco.MjModel.__copy__(tp.model))
+    pos = np.where(box_valid[..., None], box_pos, np.array([0.0, 0.0, PARKED_Z]))
+    half = np.where(box_valid[..., None], box_half, 0.01)
+    out = tp.pool[:n]
+    for i, mi in enumerate(out):
+        mi.body_pos[tp.box_bodies] = pos[i]
+        mi.geom_size[tp.box_geoms] = half[i]
+        # collision culling reads the bounding sphere, the geom's box and its body's bounding-volume node,
+        # which the compiler made for the placeholder size
+        mi.geom_rbound[tp.box_geoms] = np.linalg.norm(half[i], axis=-1)
+        mi.geom_aabb[tp.box_geoms, 3:] = half[i]
+        mi.bvh_aabb[tp.box_bvh, 3:] = half[i]
+        mi.geom_pos[tp.ground_geom, 2] = ground_z[i]
+    return out
+
+
+def _quat_yaw(q):
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    return np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+
+
+def _tilt(q):
+    x, y = q[..., 1], q[..., 2]
+    up_z = (1 - 2 * (x * x + y * y)) / np.maximum(np.sum(q * q, -1), 1e-9)
+    return np.arccos(np.clip(up_z, -1.0, 1.0))
+
+
+def _wrap(a):
+    return (a + np.pi) % (2 * np.pi) - np.pi
+
+
+def rollout_c(robot: RobotSpec, terrain, controller, params, n_ctrl: int, key, *, physics: PhysicsConfig,
+              sensors: SensorConfig, config, params_batched: bool = False, nthread: Optional[int] = None,
+              chunk: int = 8192, progress: bool = False):
+    """`hexjax.sim.rollout.rollout` with backend='c' (checked there). Returns the same `Summary` (no traces).
+    nthread: MuJoCo threads (default: all cores); chunk: envs per pass (bounds memory; the controller is
+    compiled once for this size)."""
+    from hexjax.sim.rollout import Summary, _substeps
+    if config.record:
+        raise ValueError("backend='c' keeps no per-step traces: use RolloutConfig(record=False) or backend='mjx'")
+    nthread = int(nthread or os.cpu_count() or 1)
+    if nthread < 1:
+        raise ValueError(f"nthread={nthread!r}: must be >= 1")
+    t_setup = time.perf_counter()
+    box_pos, box_half = np.asarray(terrain.box_pos, np.float64), np.asarray(terrain.box_half, np.float64)
+    box_valid, ground_z = np.asarray(terrain.box_valid, bool), np.asarray(terrain.ground_z, np.float64)
+    b, n_boxes = box_pos.shape[:2]
+    tp = _template(robot, physics, int(n_boxes))
+    m0 = tp.model
+    nq, nv, nu = m0.nq, m0.nv, m0.nu
+    n_sub = _substeps(physics, controller.dt)
+    n_settle = int(round(config.settle_time / controller.dt))
+    dt = physics.timestep
+    chunk = max(1, min(int(chunk), b))
+    n_chunks = math.ceil(b / chunk)
+
+    keys = jax.random.split(key, b)
+    yaw0 = np.asarray(jax.vmap(lambda k: jax.random.uniform(jax.random.split(k)[0], (), minval=-config.yaw_noise,
+                                                            maxval=config.yaw_noise))(keys))
+    k_ctrl = jax.vmap(lambda k: jax.random.split(k)[1])(keys)
+    p_axis = 0 if params_batched else None
+    has_init_action = hasattr(controller, "initial_action")
+    step_fn, init_fn, ctrl0_fn = _controller_fns(controller, sensors, p_axis, has_init_action)
+
+    outs = []
+    compile_s = 0.0
+    if progress:
+        from tqdm.auto import tqdm
+        bar = tqdm(total=n_chunks * (n_settle + n_ctrl), desc="mujoco-c", unit="ctrl step")
+    with mj_rollout.Rollout(nthread=nthread) as pool:
+        datas = [mujoco.MjData(m0) for _ in range(nthread)]
+        for c in range(n_chunks):
+            idx = np.arange(c * chunk, (c + 1) * chunk) % b  # the last chunk wraps round; its extras are dropped
+            take = lambda x: jax.tree_util.tree_map(lambda a: a[idx], x)
+            prm = take(params) if params_batched else params
+            models = _models(tp, box_pos[idx], box_half[idx], box_valid[idx], ground_z[idx])
+            cstate = init_fn(prm, k_ctrl[idx])
+            ctrl0 = np.asarray(ctrl0_fn(prm)) if has_init_action else tp.ctrl0
+            ctrl0 = np.broadcast_to(ctrl0, (chunk, nu)).astype(np.float64)
+            # initial state: neutral stance at (0, 0, yaw0), joints at the settle posture
+            qpos = np.broadcast_to(tp.qpos0, (chunk, nq)).copy()
+            yw = yaw0[idx]
+            qpos[:, 3], qpos[:, 6] = np.cos(yw / 2), np.sin(yw / 2)
+            qpos[:, 7:] = ctrl0
+            state = np.zeros((chunk, tp.nstate))
+            state[:, 1:1 + nq] = qpos
+            sens = np.zeros((chunk, m0.nsensordata))
+            st_out = np.empty((chunk, n_sub, tp.nstate))
+            sd_out = np.empty((chunk, n_sub, m0.nsensordata))
+            acc = _Acc(chunk, yw)
+            if c == 0:  # compile the controller step (timed apart, as the MJX rollout's compile is)
+                t0 = time.perf_counter()
+                jax.block_until_ready(step_fn(prm, cstate, qpos, state[:, 1 + nq:1 + nq + nv], sens, state[:, 0]))
+                compile_s = time.perf_counter() - t0
+            for i in range(n_settle + n_ctrl):
+                walking = i >= n_settle
+                q, v = state[:, 1:1 + nq], state[:, 1 + nq:1 + nq + nv]
+                new_cstate, action, tactile = step_fn(prm, cstate, q, v, sens, state[:, 0])
+                if walking:
+                    cstate = new_cstate
+                    action = np.asarray(action, np.float64)
+                else:
+                    action = ctrl0
+                control = np.repeat(action[:, None, :], n_sub, axis=1)
+                pool.rollout(models, datas, state, control, control_spec=mujoco.mjtState.mjSTATE_CTRL,
+                             nstep=n_sub, state=st_out, sensordata=sd_out, skip_checks=True)
+                new_state = st_out[:, -1]
+                finite = np.all(np.isfinite(new_state), axis=1)
+                power = np.abs(sd_out[..., sensor_layout()["actuator"]:] * st_out[..., 1 + nq + 6:1 + nq + nv]).sum((1, 2))
+                acc.update(i, n_settle, controller.dt, config, state, new_state, finite, power * dt,
+                           np.asarray(tactile), ground_z[idx], nq)
+                state = np.where(finite[:, None], new_state, state)
+                sens = np.where(finite[:, None], sd_out[:, -1], sens)
+                if progress:
+                    bar.update(1)
+            outs.append((acc, cstate, state[:, 1:1 + nq]))
+    if progress:
+        bar.close()
+    last = lambda x: np.concatenate(x)[:b]
+    q_end = last([o[2] for o in outs])
+    fields = {k: last([getattr(o[0], k) for o in outs]) for k in _Acc.FIELDS}
+    final = jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs)[:b], *[o[1] for o in outs])
+    rollout_c.last_compile_s = compile_s
+    rollout_c.last_wall_s = time.perf_counter() - t_setup
+    end = np.stack([q_end[:, 0], q_end[:, 1], _quat_yaw(q_end[:, 3:7])], -1)
+    return Summary(end_pose=jnp.asarray(end), final_state=final, **{k: jnp.asarray(v) for k, v in fields.items()})
+
+
+rollout_c.last_compile_s = 0.0
+rollout_c.last_wall_s = 0.0
+
+
+@functools.lru_cache(maxsize=16)
+def _controller_fns(controller, sensors: SensorConfig, p_axis, has_init_action):
+    def step(params, cstate, qpos, qvel, sens, t):
+        obs = obs_from_sensordata(sensors, qpos.astype(jnp.float32), qvel.astype(jnp.float32),
+                                  sens.astype(jnp.float32), t.astype(jnp.float32))
+        new, action = controller.step(params, cstate, obs)
+        return new, action, obs.tactile
+
+    step_b = jax.jit(jax.vmap(step, in_axes=(p_axis, 0, 0, 0, 0, 0)))
+    init_b = jax.jit(jax.vmap(controller.init, in_axes=(p_axis, 0)))
+    ctrl0_b = None
+    if has_init_action:  # (1, nu) for shared params (broadcast by the caller), (n, nu) for batched ones
+        ctrl0_b = jax.jit(jax.vmap(controller.initial_action) if p_axis == 0
+                          else lambda p: controller.initial_action(p)[None])
+    return step_b, init_b, ctrl0_b
+
+
+class _Acc:
+    """Per-env summary accumulators (numpy), updated once per control step as in the MJX rollout."""
+
+    FIELDS = ("start_pose", "fell", "fall_time", "nan", "energy", "path_length", "travel", "max_tilt",
+              "min_height", "tactile_steps")
+
+    def __init__(self, n, yaw0):
+        self.start_pose = np.stack([np.zeros(n), np.zeros(n), yaw0], -1)
+        self.fell = np.zeros(n, bool)
+        self.fall_time = np.full(n, np.inf)
+        self.nan = np.zeros(n, bool)
+        self.energy = np.zeros(n)
+        self.path_length = np.zeros(n)
+        self.travel = np.zeros((n, 3))
+        self.max_tilt = np.zeros(n)
+        self.min_height = np.full(n, np.inf)
+        self.tactile_steps = np.zeros((n, 6), np.int32)
+
+    def update(self, i, n_settle, ctrl_dt, cfg, state, new_state, finite, energy, tactile, ground_z, nq):
+        walking = i >= n_settle
+        q_old, q_new = state[:, 1:1 + nq], np.where(finite[:, None], new_state[:, 1:1 + nq], state[:, 1:1 + nq])
+        quat = q_new[:, 3:7]
+        height = q_new[:, 2] - ground_z
+        tilt = _tilt(quat)
+        yaw = _quat_yaw(quat)
+        pose = np.stack([q_new[:, 0], q_new[:, 1], yaw], -1)
+        if i == n_settle - 1:
+            self.start_pose = pose
+        fallen = walking & ((tilt > cfg.fall_tilt) | (height < cfg.fall_height))
+        self.fall_time = np.where(fallen & ~self.fell, (i + 1 - n_settle) * ctrl_dt, self.fall_time)
+        self.fell |= fallen
+        self.nan |= ~finite
+        if not walking:
+            return
+        dxy = q_new[:, :2] - q_old[:, :2]
+        self.energy += np.where(finite, energy, 0.0)
+        self.path_length += np.where(finite, np.sqrt(np.sum(dxy * dxy, -1) + 1e-18), 0.0)
+        self.travel += np.concatenate([dxy, _wrap(yaw - _quat_yaw(q_old[:, 3:7]))[:, None]], -1)
+        self.max_tilt = np.maximum(self.max_tilt, tilt)
+        self.min_height = np.minimum(self.min_height, height)
+        self.tactile_steps += tactile.astype(np.int32)

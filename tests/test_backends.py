@@ -1,0 +1,107 @@
+"""The rollout's physics backends (issue 7): MuJoCo C on host threads and MJX with MuJoCo Warp kernels walk
+the same robot, terrain and tactile controller as the default MJX (JAX) backend and report the same summary."""
+
+import mujoco
+import jax
+import numpy as np
+import pytest
+
+from hexjax.control.tactile import TactileGaitController
+from hexjax.mjcf import PhysicsConfig, build_mjcf, sensor_layout
+from hexjax.robot import get_robot
+from hexjax.sim import mujoco_c
+from hexjax.sim.model import SensorConfig, obs_from_sensordata
+from hexjax.sim.rollout import RolloutConfig, rollout
+from hexjax.terrain import get_terrain, sample
+
+ROBOT = get_robot("luneckas2020")
+CTRL = TactileGaitController(ROBOT)
+TERRAIN = sample(get_terrain("high-large"), jax.random.PRNGKey(0), 6)
+SECONDS = 5.0
+
+
+@pytest.fixture(scope="module")
+def mjx_run():
+    return rollout(ROBOT, TERRAIN, CTRL, CTRL.default_params(), SECONDS, jax.random.PRNGKey(1))
+
+
+def _agree(ref, out):
+    """Same walk on the same obstacles: per-env forward travel within 2 cm (the robot walks up to 17 cm and is
+    stopped by different amounts on each terrain), pads on in every env where they were on for >= 20 steps
+    with MJX, and the summed pad-on steps within 25 % (a pad grazing an edge for a few steps differs between
+    engines: 12 steps with MJX and 0 with Warp was seen on one terrain)."""
+    tx_ref, tx = np.asarray(ref.travel)[:, 0], np.asarray(out.travel)[:, 0]
+    assert np.ptp(tx_ref) > 0.03, "the terrains should stop the robot by different amounts"
+    np.testing.assert_allclose(tx, tx_ref, atol=0.02)
+    tac_ref, tac = np.asarray(ref.tactile_steps).sum(1), np.asarray(out.tactile_steps).sum(1)
+    assert tac_ref.sum() > 50
+    assert np.all(tac[tac_ref >= 20] > 0)
+    assert np.all(tac[tac_ref == 0] <= 5)
+    assert abs(tac.sum() - tac_ref.sum()) <= 0.25 * tac_ref.sum()
+    np.testing.assert_allclose(np.asarray(out.energy), np.asarray(ref.energy), rtol=0.2)
+    assert not np.asarray(out.nan).any() and not np.asarray(out.fell).any()
+
+
+def test_mujoco_c_backend_walks_like_mjx(mjx_run):
+    out = rollout(ROBOT, TERRAIN, CTRL, CTRL.default_params(), SECONDS, jax.random.PRNGKey(1), backend="c", nthread=2)
+    np.testing.assert_allclose(np.asarray(out.start_pose), np.asarray(mjx_run.start_pose), atol=5e-3)
+    _agree(mjx_run, out)
+
+
+def test_warp_backend_walks_like_mjx(mjx_run):
+    pytest.importorskip("warp")
+    out = rollout(ROBOT, TERRAIN, CTRL, CTRL.default_params(), SECONDS, jax.random.PRNGKey(1), backend="warp")
+    _agree(mjx_run, out)
+
+
+def test_contact_sensors_read_the_forces_mujoco_reports():
+    """The sensor block decoded by obs_from_sensordata equals mj_contactForce summed per foot / pad."""
+    phys = PhysicsConfig(slots_per_leg=0, torso_slots=0)
+    m = mujoco.MjModel.from_xml_string(build_mjcf(ROBOT, phys, contact_sensors=True, terrain_boxes=1))
+    assert m.nsensordata == sensor_layout()["size"]
+    d = mujoco.MjData(m)
+    mujoco.mj_resetDataKeyframe(m, d, 0)
+    # a box under the front-left foot, so that feet stand on the ground and on a box
+    box = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, "terrain_0")
+    box_geom = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, "terrain_0")
+    foot = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, "LF_foot")
+    mujoco.mj_forward(m, d)
+    m.body_pos[box] = [*d.site_xpos[foot, :2], -0.006]  # its top 4 mm above the ground
+    for _ in range(300):
+        mujoco.mj_step(m, d)
+    obs = obs_from_sensordata(SensorConfig(), d.qpos, d.qvel, d.sensordata, d.time)
+    gids = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, f"{n}_foot") for n in ("LF", "LM", "LH", "RF", "RM", "RH")]
+    world = np.zeros((6, 3))
+    normal = np.zeros(6)
+    assert d.ncon > 0
+    for i in range(d.ncon):
+        c = d.contact[i]
+        f = np.zeros(6)
+        mujoco.mj_contactForce(m, d, i, f)
+        for leg, g in enumerate(gids):
+            if g in (c.geom1, c.geom2):
+                w = c.frame.reshape(3, 3).T @ f[:3]
+                world[leg] += w if c.geom2 == g else -w  # the force on the foot
+                normal[leg] += f[0]
+    on_box = [c for c in d.contact[:d.ncon] if box_geom in (c.geom1, c.geom2)]
+    assert on_box and (normal > 0.5).sum() >= 3, "the LF foot on the box, and a support polygon under the robot"
+    np.testing.assert_allclose(np.asarray(obs.foot_force), world, atol=1e-6)
+    np.testing.assert_allclose(np.asarray(obs.tactile_force), 0.0, atol=1e-9)  # nothing touches a pad here
+    np.testing.assert_allclose(np.asarray(obs.foot_force)[:, 2].sum(), ROBOT.total_mass * 9.81, rtol=0.05)
+    np.testing.assert_array_equal(np.asarray(obs.foot_contact), normal > 0.5)
+
+
+def test_backend_bad_input_raises_before_tracing():
+    p = CTRL.default_params()
+    with pytest.raises(ValueError, match="backend='gpu'"):
+        rollout(ROBOT, TERRAIN, CTRL, p, 1.0, jax.random.PRNGKey(0), backend="gpu")
+    with pytest.raises(ValueError, match="forward only"):
+        rollout(ROBOT, TERRAIN, CTRL, p, 1.0, jax.random.PRNGKey(0), backend="c",
+                config=RolloutConfig(reversible_solver=True))
+    with pytest.raises(ValueError, match="traces"):
+        rollout(ROBOT, TERRAIN, CTRL, p, 1.0, jax.random.PRNGKey(0), backend="c", config=RolloutConfig(record=True))
+    with pytest.raises(ValueError, match="nthread"):
+        rollout(ROBOT, TERRAIN, CTRL, p, 1.0, jax.random.PRNGKey(0), backend="c", nthread=-1)
+    with pytest.raises(ValueError, match="terrain_boxes"):
+        build_mjcf(ROBOT, PhysicsConfig(), terrain_boxes=3)
+    assert mujoco_c.rollout_c.last_compile_s >= 0.0
