@@ -19,7 +19,7 @@ def _cmd_evaluate(a) -> int:
     from hexjax.analysis.evaluate import DEFAULT_CATEGORIES, evaluate, format_table
     cats = tuple(a.categories.split(",")) if a.categories else DEFAULT_CATEGORIES
     res = evaluate(robot=a.robot, gait=a.gait, distance=a.distance, batch=a.batch, seed=a.seed,
-                   categories=cats, step_height=a.step_height / 100.0)
+                   categories=cats, step_height=a.step_height / 100.0, backend=a.backend)
     c = res["config"]
     print(f"\n{c['robot']} {c['gait']} gait, {c['distance_m']:g} m ({c['gait_cycles']} cycles, "
           f"{c['duration_s']:.1f} s), {c['batch']} envs per category, seed {c['seed']}, no tactile method")
@@ -346,6 +346,8 @@ def main(argv=None) -> int:
     e.add_argument("--seed", type=int, default=0)
     e.add_argument("--step-height", type=float, default=3.0, help="h_i, cm (default 3)")
     e.add_argument("--categories", default="", help="comma list of terrain presets (default flat + seed-000 four)")
+    e.add_argument("--backend", default="mjx", choices=["mjx", "warp", "c"],
+                   help="physics: mjx (default), warp (MuJoCo Warp through MJX; needs warp-lang), c (MuJoCo C, all cores)")
     e.add_argument("--json", default="", help="write the numbers here")
     e.set_defaults(fn=_cmd_evaluate)
 

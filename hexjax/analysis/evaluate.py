@@ -39,9 +39,11 @@ def pad_terrain(t: Terrain, m: int) -> Terrain:
 
 def evaluate(robot: str = "luneckas2020", gait: str = "tripod", distance: float = 1.0, batch: int = 16,
              seed: int = 0, categories: Sequence[str] = DEFAULT_CATEGORIES, step_height: float = 0.03,
-             physics: PhysicsConfig = PhysicsConfig(), progress: bool = True, mesh=None) -> Dict:
+             physics: PhysicsConfig = PhysicsConfig(), progress: bool = True, mesh=None,
+             backend: str = "mjx") -> Dict:
     """Walk `distance` m with the open-loop seed-000 gait on each category; returns
-    {"config": ..., "categories": {name: batch_stats + env_steps_per_s}}."""
+    {"config": ..., "categories": {name: batch_stats + env_steps_per_s}}. backend: the physics engine
+    ('mjx', 'warp', 'c'; see `hexjax.sim.rollout.rollout`)."""
     if not (isinstance(distance, (int, float)) and 0 < distance <= 20):
         raise ValueError(f"distance={distance!r}: must be in (0, 20] m")
     if not isinstance(batch, int) or batch < 1:
@@ -53,7 +55,11 @@ def evaluate(robot: str = "luneckas2020", gait: str = "tripod", distance: float 
     n_cycles, duration = ctrl.duration_for(distance, params)
     ctrl = dataclasses.replace(ctrl, n_cycles=n_cycles)
     m = max(s.max_boxes for s in specs.values())
-    sim_model(spec, physics)  # build the MJX model up front so no category's timing includes it
+    from hexjax.sim.rollout import BACKENDS
+    if backend not in BACKENDS:
+        raise ValueError(f"backend={backend!r}: use one of {BACKENDS}")
+    if backend != "c":  # build the MJX model up front so no category's timing includes it
+        sim_model(spec, physics, "warp" if backend == "warp" else "jax")
     key = jax.random.PRNGKey(seed)
     results = {}
     bar = tqdm(list(specs.items()), desc=f"evaluate {gait} {distance:g} m", disable=not progress, unit="cat")
@@ -62,7 +68,8 @@ def evaluate(robot: str = "luneckas2020", gait: str = "tripod", distance: float 
         k_t, k_r = jax.random.split(jax.random.fold_in(key, i))
         terr = pad_terrain(sample(tspec, k_t, batch), m)
         t0 = time.perf_counter()
-        summ = rollout(spec, terr, ctrl, params, duration, k_r, physics=physics, config=RolloutConfig(), mesh=mesh)
+        summ = rollout(spec, terr, ctrl, params, duration, k_r, physics=physics, config=RolloutConfig(), mesh=mesh,
+                       backend=backend)
         jax.block_until_ready(summ.end_pose)
         wall = time.perf_counter() - t0 - rollout.last_compile_s
         stats = batch_stats(summ, goal_errors(summ, distance))
@@ -75,7 +82,7 @@ def evaluate(robot: str = "luneckas2020", gait: str = "tripod", distance: float 
                            gait_cycles=n_cycles, duration_s=duration, step_height_m=step_height,
                            step_length_m=float(params.step_length), swing_time_s=float(params.swing_time),
                            slots_per_leg=physics.slots_per_leg, torso_slots=physics.torso_slots,
-                           backend=jax.default_backend(), devices=len(jax.devices())),
+                           backend=jax.default_backend(), devices=len(jax.devices()), physics_backend=backend),
             "categories": results}
 
 
