@@ -31,7 +31,7 @@ import numpy as np
 from mujoco import rollout as mj_rollout
 
 from hexjax.mjcf import PARKED_Z, PhysicsConfig, build_mjcf, sensor_layout
-from hexjax.robot import RobotSpec
+from hexjax.robot import RobotSpec, quat_yaw, wrap_angle
 from hexjax.sim.model import SensorConfig, obs_from_sensordata
 
 _FULL = mujoco.mjtState.mjSTATE_FULLPHYSICS
@@ -85,8 +85,7 @@ def _models(tp: _Template, box_pos, box_half, box_valid, ground_z):
 
 
 def _quat_yaw(q):
-    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    return np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+    return np.asarray(quat_yaw(q), np.float64)
 
 
 def _tilt(q):
@@ -96,7 +95,7 @@ def _tilt(q):
 
 
 def _wrap(a):
-    return (a + np.pi) % (2 * np.pi) - np.pi
+    return np.asarray(wrap_angle(a), np.float64)
 
 
 def rollout_c(robot: RobotSpec, terrain, controller, params, n_ctrl: int, key, *, physics: PhysicsConfig,
