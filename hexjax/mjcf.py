@@ -78,10 +78,10 @@ def build_mjcf(spec: RobotSpec, physics: PhysicsConfig, *, contact_sensors: bool
     contact_sensors: declare MuJoCo contact and actuator-force sensors (see `sensor_layout`), so that an
     engine other than MJX's JAX one (MuJoCo Warp, MuJoCo C) computes the same observations.
     terrain_boxes: instead of slots, declare this many static bodies with one box geom each, `terrain_<j>`
-    (parked below the ground), that
-    collide with the feet, pads and torso through contype / conaffinity, i.e. through MuJoCo's own broadphase
-    (MuJoCo C, where one model per env is cheap). Needs slots_per_leg = torso_slots = 0. The contact
-    parameters equal the slot pairs': condim 3, the robot's friction, default solref / solimp, no margin."""
+    (parked below the ground). They collide with the feet, pads and torso through contype / conaffinity, that
+    is through MuJoCo's own broadphase (MuJoCo C, where one model per env is cheap). Needs slots_per_leg =
+    torso_slots = 0. The contact parameters equal the slot pairs': condim 3, the robot's friction, default
+    solref / solimp, no margin."""
     spec.validate()
     physics.validate()
     if terrain_boxes and (physics.slots_per_leg or physics.torso_slots):

@@ -32,7 +32,7 @@ from mujoco import rollout as mj_rollout
 
 from hexjax.mjcf import PARKED_Z, PhysicsConfig, build_mjcf, sensor_layout
 from hexjax.robot import RobotSpec, quat_yaw, wrap_angle
-from hexjax.sim.model import SensorConfig, obs_from_sensordata
+from hexjax.sim.model import SensorConfig, actuator_forces, obs_from_sensordata
 
 _FULL = mujoco.mjtState.mjSTATE_FULLPHYSICS
 
@@ -181,7 +181,7 @@ def rollout_c(robot: RobotSpec, terrain, controller, params, n_ctrl: int, key, *
                              nstep=n_sub, state=st_out, sensordata=sd_out, skip_checks=True)
                 new_state = st_out[:, -1]
                 finite = np.all(np.isfinite(new_state), axis=1)
-                power = np.abs(sd_out[..., sensor_layout()["actuator"]:] * st_out[..., 1 + nq + 6:1 + nq + nv]).sum((1, 2))
+                power = np.abs(actuator_forces(sd_out) * st_out[..., 1 + nq + 6:1 + nq + nv]).sum((1, 2))
                 acc.update(i, n_settle, controller.dt, config, state, new_state, finite, power * dt,
                            np.asarray(tactile), ground_z[idx], nq)
                 state = np.where(finite[:, None], new_state, state)

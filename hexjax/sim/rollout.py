@@ -357,7 +357,7 @@ def rollout(robot: RobotSpec, terrain: Terrain, controller, params, duration: fl
       'warp' MJX with MuJoCo Warp kernels (`impl='warp'`; CUDA GPU or CPU; needs warp-lang). Forward only;
              observations come from MuJoCo contact sensors in the model.
       'c'    MuJoCo C on `nthread` host threads (default: all cores) through `mujoco.rollout`, every terrain
-             box a geom found by MuJoCo's broadphase; the controller runs in JAX between control steps
+             box a static body found by MuJoCo's broadphase; the controller runs in JAX between control steps
              (`hexjax.sim.mujoco_c`). Forward only; no traces (record=False).
 
     robot: RobotSpec; terrain: batched Terrain from `hexjax.terrain.sample`; controller: an object
