@@ -40,6 +40,7 @@ from hexjax.mjcf import PhysicsConfig, physics_for
 from hexjax.robot import get_robot
 from hexjax.sim.model import SensorConfig, assign_slots, env_model, mjx, read_obs, sim_model
 from hexjax.terrain import Terrain, get_terrain, sample_one
+from mujoco.mjx._src import math as mjx_math  # noqa: E402 (after hexjax.sim.model, which silences MJX's import)
 
 
 @struct.dataclass
@@ -56,11 +57,8 @@ class HexState:
 
 
 def _rotate_to_body(quat, v):
-    w, x, y, z = quat[0], quat[1], quat[2], quat[3]
-    r = jnp.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                   [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                   [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
-    return r.T @ v
+    """A world-frame vector v in the frame of the torso with orientation quat (w, x, y, z)."""
+    return mjx_math.rotate(v, mjx_math.quat_inv(quat))
 
 
 class HexapodGoalEnv(Env):

@@ -202,7 +202,6 @@ def wrap_angle(a):
     return jnp.arctan2(jnp.sin(a), jnp.cos(a))
 
 
-
 def leg_fk(spec: RobotSpec, q):
     """Foot centre in the leg frame from joint angles. q: (..., 3) rad -> (..., 3) m."""
     q1, q2, q3 = q[..., 0], q[..., 1], q[..., 2]

@@ -33,6 +33,7 @@ from mujoco import rollout as mj_rollout
 from hexjax.mjcf import PARKED_Z, PhysicsConfig, build_mjcf, sensor_layout
 from hexjax.robot import RobotSpec, quat_yaw, wrap_angle
 from hexjax.sim.model import SensorConfig, actuator_forces, obs_from_sensordata
+from hexjax.sim.rollout import Summary, _substeps, _tilt  # (rollout imports this module only when asked for 'c')
 
 _FULL = mujoco.mjtState.mjSTATE_FULLPHYSICS
 
@@ -88,12 +89,6 @@ def _quat_yaw(q):
     return np.asarray(quat_yaw(q), np.float64)
 
 
-def _tilt(q):
-    x, y = q[..., 1], q[..., 2]
-    up_z = (1 - 2 * (x * x + y * y)) / np.maximum(np.sum(q * q, -1), 1e-9)
-    return np.arccos(np.clip(up_z, -1.0, 1.0))
-
-
 def _wrap(a):
     return np.asarray(wrap_angle(a), np.float64)
 
@@ -104,13 +99,11 @@ def rollout_c(robot: RobotSpec, terrain, controller, params, n_ctrl: int, key, *
     """`hexjax.sim.rollout.rollout` with backend='c' (checked there). Returns the same `Summary` (no traces).
     nthread: MuJoCo threads (default: all cores); chunk: envs per pass (bounds memory; the controller is
     compiled once for this size)."""
-    from hexjax.sim.rollout import Summary, _substeps
     if config.record:
         raise ValueError("backend='c' keeps no per-step traces: use RolloutConfig(record=False) or backend='mjx'")
     nthread = int(nthread or os.cpu_count() or 1)
     if nthread < 1:
         raise ValueError(f"nthread={nthread!r}: must be >= 1")
-    t_setup = time.perf_counter()
     box_pos, box_half = np.asarray(terrain.box_pos, np.float64), np.asarray(terrain.box_half, np.float64)
     box_valid, ground_z = np.asarray(terrain.box_valid, bool), np.asarray(terrain.ground_z, np.float64)
     b = box_pos.shape[0]
@@ -196,13 +189,11 @@ def rollout_c(robot: RobotSpec, terrain, controller, params, n_ctrl: int, key, *
     fields = {k: last([getattr(o[0], k) for o in outs]) for k in _Acc.FIELDS}
     final = jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs)[:b], *[o[1] for o in outs])
     rollout_c.last_compile_s = compile_s
-    rollout_c.last_wall_s = time.perf_counter() - t_setup
     end = np.stack([q_end[:, 0], q_end[:, 1], _quat_yaw(q_end[:, 3:7])], -1)
     return Summary(end_pose=jnp.asarray(end), final_state=final, **{k: jnp.asarray(v) for k, v in fields.items()})
 
 
 rollout_c.last_compile_s = 0.0
-rollout_c.last_wall_s = 0.0
 
 
 @functools.lru_cache(maxsize=16)
@@ -245,7 +236,7 @@ class _Acc:
         q_old, q_new = state[:, 1:1 + nq], np.where(finite[:, None], new_state[:, 1:1 + nq], state[:, 1:1 + nq])
         quat = q_new[:, 3:7]
         height = q_new[:, 2] - ground_z
-        tilt = _tilt(quat)
+        tilt = np.asarray(_tilt(quat), np.float64)
         yaw = _quat_yaw(quat)
         pose = np.stack([q_new[:, 0], q_new[:, 1], yaw], -1)
         if i == n_settle - 1:

@@ -176,11 +176,11 @@ class Summary:
 
 
 def _tilt(q):
-    """Angle between the torso z axis and world z, rad."""
-    x, y = q[1], q[2]
+    """Angle between the torso z axis and world z, rad, of quaternions q (..., 4)."""
+    x, y = q[..., 1], q[..., 2]
     up_z = 1 - 2 * (x * x + y * y)
     # clipped inside (-1, 1) so the derivative stays finite for an upright torso (jax.grad)
-    return jnp.arccos(jnp.clip(up_z / jnp.maximum(jnp.sum(q * q), 1e-9), -1.0 + 1e-6, 1.0 - 1e-6))
+    return jnp.arccos(jnp.clip(up_z / jnp.maximum(jnp.sum(q * q, -1), 1e-9), -1.0 + 1e-6, 1.0 - 1e-6))
 
 
 def _substeps(physics: PhysicsConfig, ctrl_dt: float) -> int:
