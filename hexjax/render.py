@@ -20,8 +20,17 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from hexjax.mjcf import PhysicsConfig, build_mjcf
-from hexjax.robot import LEG_NAMES, RobotSpec
+from hexjax.control.cpg import CPGController
+from hexjax.control.gait import GaitController
+from hexjax.control.tactile import TactileGaitController
+from hexjax.sim.config import PhysicsConfig, RolloutConfig, physics_for
+from hexjax.sim.mjcf import build_mjcf
+from hexjax.sim.rollout import rollout
+from hexjax.world.presets import get_robot, get_terrain
+from hexjax.world.robot import LEG_NAMES, RobotSpec
+from hexjax.world.terrain import sample
+
+CONTROLLERS = {"gait": GaitController, "tactile": TactileGaitController, "cpg": CPGController}
 
 PAD_ON = np.array([1.0, 0.85, 0.1, 1.0])
 
@@ -147,12 +156,8 @@ def render_walk(robot_name: str = "luneckas2020", terrain_name: str = "high-larg
     """Roll out a small batch (max(envs) + 1 terrains of `terrain_name`) with recording, render each env of
     `envs` into `out` (one file per env: a `_envK` suffix when more than one) and optionally a PNG still of
     the middle frame of the first. Returns what was written."""
-    import jax
     import imageio.v2 as imageio
-    from hexjax.mjcf import physics_for
-    from hexjax.robot import get_robot
-    from hexjax.sim.rollout import RolloutConfig, rollout
-    from hexjax.terrain import get_terrain, sample
+    import jax
     envs = list(envs)
     if not envs or min(envs) < 0:
         raise ValueError(f"envs={envs!r}: give one or more env indices >= 0")
@@ -161,17 +166,9 @@ def render_walk(robot_name: str = "luneckas2020", terrain_name: str = "high-larg
     rb = get_robot(robot_name)
     tspec = get_terrain(terrain_name)
     physics = physics_for(tspec.kind, PhysicsConfig(slots_per_leg=tspec.slots_per_leg))
-    if controller == "gait":
-        from hexjax.control.gait import GaitController
-        ctrl = GaitController(rb)
-    elif controller == "tactile":
-        from hexjax.control.tactile import TactileGaitController
-        ctrl = TactileGaitController(rb)
-    elif controller == "cpg":
-        from hexjax.control.cpg import CPGController
-        ctrl = CPGController(rb)
-    else:
-        raise ValueError(f"controller={controller!r}: choose gait, tactile or cpg")
+    if controller not in CONTROLLERS:
+        raise ValueError(f"controller={controller!r}: choose one of {sorted(CONTROLLERS)}")
+    ctrl = CONTROLLERS[controller](rb)
     terrain = sample(tspec, jax.random.PRNGKey(seed), max(envs) + 1)
     s = rollout(rb, terrain, ctrl, ctrl.default_params(), seconds, jax.random.PRNGKey(seed + 1), physics=physics,
                 config=RolloutConfig(record=True))
@@ -188,3 +185,16 @@ def render_walk(robot_name: str = "luneckas2020", terrain_name: str = "high-larg
             written.append(still)
     return {"written": written, "frames_per_video": int(len(frames)), "fps": fps,
             "tactile_steps": np.asarray(s.tactile_steps)[envs].tolist(), "fell": np.asarray(s.fell)[envs].tolist()}
+
+
+# The command (configs/commands/render.yaml) --------------------------------------------------------------------
+def run(o, entry) -> dict:
+    return render_walk(robot_name=o.robot, terrain_name=o.terrain, controller=o.controller, seconds=o.seconds,
+                       seed=o.seed, envs=o.envs, out=o.out, width=o.width, height=o.height, every=o.every,
+                       still=o.still or None)
+
+
+def report(res: dict) -> str:
+    return "\n".join([f"wrote {w}" for w in res["written"]] + [
+        f"{res['frames_per_video']} frames per video at {res['fps']:.0f} fps; tactile steps per leg "
+        f"{res['tactile_steps']}; fell {res['fell']}"])

@@ -3,12 +3,18 @@ finite-difference check? Prints the per-step-clipped autodiff gradient and centr
 steps, for 32 envs over 0.5 s and 1 s. Usage: python scripts/fd_noise_tactile.py (about 4 min on 2 cores).
 It uses one Newton iteration, as gradients then required; that unconverged solver is what makes the
 differences disagree (docs/tuning.md). tests/test_tune.py does the check with RolloutConfig.reversible_solver."""
-import dataclasses, jax, jax.numpy as jnp, numpy as np
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
 from hexjax.control.tactile import TactileGaitController
-from hexjax.robot import luneckas2020
-from hexjax.terrain import get_terrain, sample
-from hexjax.mjcf import physics_for
-from hexjax.sim.rollout import RolloutConfig, rollout_function
+from hexjax.sim.config import RolloutConfig, physics_for
+from hexjax.sim.rollout import rollout_function
+from hexjax.world.presets import get_terrain, luneckas2020
+from hexjax.world.terrain import sample
+
 robot = luneckas2020(); B = 32
 ctrl = TactileGaitController(robot, gait="tripod", smooth=True)
 p = ctrl.default_params()

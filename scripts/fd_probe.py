@@ -1,7 +1,7 @@
 """Issue 5 diagnostic: does the autodiff gradient of a short smooth rollout agree with central differences?
 
 One robot, one controller, one solver setting per call; prints the cosine and the norms per parameter
-(or group) at several finite-difference steps. The objective is the one of tests/test_tune.py: the mean
+(or group) at several finite-difference steps. The objective is `hexjax.tune.gradcheck.travel_objective`, as in tests/test_tune.py: the mean
 travel x + 0.3 y + 0.1 yaw of B envs over a `--window` s rollout on flat ground (or before a face across
 the path, `--face X`), with MJX's Newton iterations traced as a scan. About 2-3 min per call on 2 cores.
 
@@ -19,15 +19,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from hexjax.analysis.gradcheck import central_differences, group_cosines
-from hexjax.analysis.space import Bound, ParamSpace, make_space
 from hexjax.control.cpg import CPGController
 from hexjax.control.gait import GaitController
 from hexjax.control.tactile import TactileGaitController
-from hexjax.mjcf import physics_for
-from hexjax.robot import get_robot
-from hexjax.sim.rollout import RolloutConfig, rollout_function
-from hexjax.terrain import get_terrain, sample
+from hexjax.sim.config import RolloutConfig, physics_for
+from hexjax.sim.rollout import rollout_function
+from hexjax.tune.gradcheck import check, travel_objective
+from hexjax.tune.space import Bound, ParamSpace, make_space
+from hexjax.world.presets import get_robot, get_terrain
+from hexjax.world.terrain import sample
 
 ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
 ap.add_argument("--robot", default="yu2019", help="robot preset")
@@ -82,16 +82,11 @@ model, fn = rollout_function(robot, ctrl, a.window, physics=phys,
                              config=RolloutConfig(settle_time=a.settle, reversible_solver=True))
 
 
-def obj(u):
-    s = fn(model, space.apply(u, p), terr, keys)
-    return jnp.mean(s.travel[:, 0]) + 0.3 * jnp.mean(s.travel[:, 1]) + 0.1 * jnp.mean(s.travel[:, 2])
-
-
 t0 = time.time()
-val, g = jax.jit(jax.value_and_grad(obj))(u0)
-f = jax.jit(obj)
-print(f"{vars(a)}\nobjective {float(val):.6g} (compile + gradient {time.time() - t0:.0f} s)", flush=True)
-for eps in [float(e) for e in a.eps.split(",")]:
-    for group, (cos, ad, b) in group_cosines(g, central_differences(f, u0, eps), groups).items():
+value, by_eps = check(travel_objective(fn, model, space, p, terr, keys), u0, groups,
+                      [float(e) for e in a.eps.split(",")])
+print(f"{vars(a)}\nobjective {value:.6g} (compile, gradient and differences {time.time() - t0:.0f} s)", flush=True)
+for eps, res in by_eps.items():
+    for group, (cos, ad, b) in res.items():
         print(f"eps {eps:g} {group:20s} cos {cos:+.3f} |autodiff| {np.linalg.norm(ad):.3g} "
               f"|FD| {np.linalg.norm(b):.3g}", flush=True)

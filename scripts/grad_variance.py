@@ -6,7 +6,7 @@ its covariance is the per-env covariance / B. Printed and written per parameter:
 std, and for B in {1, 2, 4, 8, 16, 32} the relative error ||std of the batch mean|| / ||mean|| and the
 sign agreement P(sign of the batch mean = sign of the N-env mean), the latter measured by resampling.
 
-    python scripts/grad_variance.py [--config configs/tune/tactile_tripod.yaml] [--n 32] [--window S] [--json F]"""
+    python scripts/grad_variance.py [--config tactile_tripod] [--n 32] [--window S] [--json F]"""
 
 import argparse
 import json
@@ -17,11 +17,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from hexjax.analysis.tune import Problem, per_env_objective
-from hexjax.analysis.tune_config import load_tune_config
+from hexjax.tune.config import load_tune_config
+from hexjax.tune.objective import Problem, per_env_objective
 
 ap = argparse.ArgumentParser()
-ap.add_argument("--config", default="configs/tune/tactile_tripod.yaml")
+ap.add_argument("--config", default="tactile_tripod", help="tuning config name or .yaml path")
 ap.add_argument("--n", type=int, default=32)
 ap.add_argument("--seed", type=int, default=11, help="terrain stream step (not used by tuning's first steps)")
 ap.add_argument("--window", type=float, default=None, help="s (default: the config's)")

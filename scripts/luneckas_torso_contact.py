@@ -1,12 +1,18 @@
 """Diagnostic for docs/tactile.md: on large obstacles, how often an obstacle top is within 5 mm of the
 torso bottom under its footprint, and how often feet stand on obstacle tops (tripod, 1 m, 8 runs per
 row, high density, with and without the tactile method). Usage: python scripts/luneckas_torso_contact.py"""
-import dataclasses, jax, jax.numpy as jnp, numpy as np
-from hexjax.control.tactile import TactileGaitController
-from hexjax.robot import luneckas2020
-from hexjax.terrain import get_terrain, sample
-from hexjax.analysis.evaluate import pad_terrain
-from hexjax.sim.rollout import rollout, RolloutConfig
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from hexjax.control.tactile import TactileGaitController, overcome_height
+from hexjax.sim.config import RolloutConfig
+from hexjax.sim.rollout import rollout
+from hexjax.world.presets import get_terrain, luneckas2020
+from hexjax.world.terrain import pad_terrain, sample
+
 robot = luneckas2020(); n = 8
 cats = ["high-small", "high-large"]
 specs = {c: get_terrain(c, length=1.3) for c in cats}
@@ -17,7 +23,7 @@ terrs, ps = [], []
 for i, c in enumerate(cats):
     t = pad_terrain(sample(specs[c], jax.random.PRNGKey(i), n), m)
     for en in (0, 1):
-        terrs.append(t); ps += [ctrl.default_params(enable=bool(en), max_obstacle_height=specs[c].height_range[1])] * n
+        terrs.append(t); ps += [ctrl.default_params(enable=float(en), overcome_height=overcome_height(specs[c].height_range[1]))] * n
 terr = jax.tree_util.tree_map(lambda *a: jnp.concatenate(a), *terrs)
 params = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *ps)
 s = rollout(robot, terr, ctrl, params, dur, jax.random.PRNGKey(9), params_batched=True, config=RolloutConfig(record=True))

@@ -14,10 +14,11 @@ import mujoco
 import numpy as np
 
 import hexjax  # noqa: F401  (sets the XLA CPU flag)
-from hexjax.mjcf import PhysicsConfig, build_mjcf
-from hexjax.robot import luneckas2020
+from hexjax.sim.config import PhysicsConfig
+from hexjax.sim.mjcf import build_mjcf
 from hexjax.sim.model import batch_model, mjx, sim_model
-from hexjax.terrain import get_terrain, heightmap, sample
+from hexjax.world.presets import get_terrain, luneckas2020
+from hexjax.world.terrain import heightmap, sample
 
 
 def hfield_xml(xml: str, nx: int, ny: int, sx: float, sy: float, top: float) -> str:

@@ -25,11 +25,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from hexjax.control.tactile import TactileGaitController
-from hexjax.mjcf import PhysicsConfig
-from hexjax.robot import get_robot
-from hexjax.sim.model import SensorConfig, assign_slots, batch_model, env_model, mjx, read_obs, sim_model
-from hexjax.sim.rollout import RolloutConfig, rollout
-from hexjax.terrain import get_terrain, sample
+from hexjax.sim.config import PhysicsConfig, RolloutConfig, SensorConfig
+from hexjax.sim.model import batch_model, mjx, read_obs, sim_model
+from hexjax.sim.rollout import rollout
+from hexjax.sim.step import env_view
+from hexjax.world.presets import get_robot, get_terrain
+from hexjax.world.terrain import sample
 
 
 def _time(fn, *args, repeats=3):
@@ -97,16 +98,10 @@ def stage_profile(b: int, reps: int, terrain: str):
     for name, fn in stages.items():
         timed(name, fn)
 
-    feet = d.site_xpos[:, sm.foot_sites, :2]
     sensors = SensorConfig()
 
-    def slots_and_obs(m, d, t, f):
-        sp, ss = assign_slots(sm, t, f, d.qpos[:2])
-        me = env_model(sm, t, sp, ss, base=m)
-        return me, read_obs(sm, sensors, me, d)
-
-    def body_slots(m, d, t, f):
-        me, _ = slots_and_obs(m, d, t, f)
+    def body_slots(m, d, t):
+        me, _, _ = env_view(sm, sensors, t, d, base=m)  # the control step's slots and model
         return d.replace(qpos=d.qpos + 1e-9 * me.geom_pos[0, 0])
 
     def body_obs(m, d):
@@ -123,9 +118,9 @@ def stage_profile(b: int, reps: int, terrain: str):
         return jax.lax.scan(f, cs, None, length=reps)
 
     for name, f, args in [
-        ("assign_slots+env_model", jax.jit(jax.vmap(
-            lambda m, d, t, f_: jax.lax.scan(lambda dd, _: (body_slots(m, dd, t, f_), None), d, None,
-                                             length=reps)[0], in_axes=(in_axes, 0, 0, 0))), (m_b, d, terr, feet)),
+        ("slots+env_model+read_obs", jax.jit(jax.vmap(
+            lambda m, d, t: jax.lax.scan(lambda dd, _: (body_slots(m, dd, t), None), d, None,
+                                         length=reps)[0], in_axes=(in_axes, 0, 0))), (m_b, d, terr)),
         ("read_obs", jax.jit(jax.vmap(
             lambda m, d: jax.lax.scan(lambda dd, _: (body_obs(m, dd), None), d, None, length=reps)[0],
             in_axes=(in_axes, 0))), (m_b, d)),
@@ -154,18 +149,16 @@ def variant_profile(b: int, seconds: float, terrain: str, names):
     rows = []
     for name in names:
         phys, cfg = variants[name]
-        n_phys = int(round((seconds + cfg.settle_time) / phys.timestep))
-        t0 = time.perf_counter()
-        out = rollout(spec, terr, ctrl, params, seconds, jax.random.PRNGKey(1), physics=phys, config=cfg)
-        jax.block_until_ready(out.end_pose)
-        first = time.perf_counter() - t0
+        out, st = rollout(spec, terr, ctrl, params, seconds, jax.random.PRNGKey(1), physics=phys, config=cfg,
+                          stats=True)
+        first = st.wall_s
         best = np.inf
         for r in range(2):
             t0 = time.perf_counter()
             out = rollout(spec, terr, ctrl, params, seconds, jax.random.PRNGKey(2 + r), physics=phys, config=cfg)
             jax.block_until_ready(out.end_pose)
             best = min(best, time.perf_counter() - t0)
-        rate = b * n_phys / best
+        rate = st.env_steps / best
         rows.append(dict(variant=name, batch=b, first_call_s=round(first, 1), run_s=round(best, 3),
                          env_steps_per_s=round(rate), fell=int(np.asarray(out.fell).sum()),
                          nan=int(np.asarray(out.nan).sum())))

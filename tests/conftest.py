@@ -7,12 +7,15 @@ os.environ.setdefault("JAX_PLATFORMS", "cpu")
 
 import pytest  # noqa: E402
 
+_PEAKS = []
+
 
 @pytest.fixture(autouse=True, scope="module")
 def _free_compiled_rollouts():
-    """Each module's compiled rollouts are dropped after it. One pytest process compiles ~100 MJX programs;
+    """Each module's compiled rollouts are dropped after it. One process compiles dozens of MJX programs;
     kept alive in `_compiled`'s cache and JAX's, they only grow the process (a full run once died with a
-    segfault inside XLA's compiler late in the run; the same test passed alone)."""
+    segfault inside XLA's compiler late in the run; the same test passed alone). A later module that needs
+    the same program again loads it from the persistent compilation cache (`hexjax.cache`)."""
     yield
     import jax
 
@@ -21,7 +24,20 @@ def _free_compiled_rollouts():
     jax.clear_caches()
 
 
-def pytest_terminal_summary(terminalreporter):
+def _peak_gib() -> float:
     import resource
-    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024 ** 2
-    terminalreporter.write_line(f"peak resident memory of the test process: {rss:.1f} GiB")
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024 ** 2
+
+
+def pytest_sessionfinish(session):
+    if hasattr(session.config, "workeroutput"):  # a pytest-xdist worker: report to the controller
+        session.config.workeroutput["peak_rss_gib"] = _peak_gib()
+
+
+def pytest_testnodedown(node, error):
+    _PEAKS.append(node.workeroutput.get("peak_rss_gib", 0.0) if hasattr(node, "workeroutput") else 0.0)
+
+
+def pytest_terminal_summary(terminalreporter):
+    peaks = _PEAKS or [_peak_gib()]
+    terminalreporter.write_line("peak resident memory per test process: " + ", ".join(f"{p:.1f} GiB" for p in peaks))

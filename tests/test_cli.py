@@ -1,19 +1,25 @@
+"""The `hexjax` command: built from the registry, fast to answer, checks before it works, and runs evaluate."""
+
 import json
+import subprocess
+import sys
 
 import numpy as np
+import pytest
 
 from hexjax.cli import main
+from hexjax.experiments.registry import commands, experiments
 
 
 def test_evaluate_obstacles_lose_distance(tmp_path, capsys):
-    """Acceptance: without the tactile method the robot loses distance on obstacle terrain, the table
-    shows it, and nothing NaNs. One compile serves both categories (padded to one box count)."""
+    """Without the tactile method the robot loses distance on obstacle terrain, the table shows it (with its
+    legend), and nothing NaNs. One compile serves both categories (padded to one box count)."""
     out = tmp_path / "ev.json"
     rc = main(["evaluate", "--gait", "tripod", "--distance", "1.0", "--batch", "8", "--seed", "3",
                "--categories", "flat,high-large", "--json", str(out)])
     assert rc == 0
     table = capsys.readouterr().out
-    assert "high-large" in table and "|dx| cm" in table
+    assert "high-large" in table and "|dx| cm" in table and "succ: upright and within 10 cm" in table
     res = json.loads(out.read_text())
     flat, obst = res["categories"]["flat"], res["categories"]["high-large"]
     assert flat["nan"] == 0 and obst["nan"] == 0
@@ -23,27 +29,79 @@ def test_evaluate_obstacles_lose_distance(tmp_path, capsys):
     assert np.isfinite(obst["env_steps_per_s"]) and obst["env_steps_per_s"] > 0
 
 
-def test_terrain_png(tmp_path):
-    png = tmp_path / "t.png"
-    assert main(["terrain", "--preset", "low-large", "--seed", "2", "--png", str(png)]) == 0
-    assert png.stat().st_size > 10_000
+def test_help_and_errors_import_no_jax():
+    """`hexjax --help`, an experiment's `--help`, `--list` and a bad flag answer before JAX is imported (so in
+    well under a second)."""
+    code = ("import sys\nfrom hexjax.cli import main\n"
+            "for argv in (['--help'], ['experiment', 'zhao2018-mjx', '--help'], ['evaluate', '--gait', 'gallop']):\n"
+            "    try:\n        main(argv)\n    except SystemExit:\n        pass\n"
+            "main(['experiment', '--list'])\n"
+            "assert 'jax' not in sys.modules, 'jax was imported'\nprint('NO-JAX')")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0 and "NO-JAX" in r.stdout, r.stderr[-2000:]
+    assert "invalid choice: 'gallop'" in r.stderr
 
 
-def test_cli_reports_bad_input(capsys):
-    assert main(["terrain", "--preset", "volcano", "--png", "x.png"]) == 2
+def test_experiment_list_and_per_experiment_flags(capsys):
+    assert main(["experiment", "--list"]) == 0
+    listed = capsys.readouterr().out.splitlines()
+    names = sorted(experiments())
+    assert len(listed) == len(names) >= 10
+    for name, line in zip(names, listed):
+        assert line.split()[0] == name and any(p in line for p in ("Luneckas 2020", "Yu 2019", "Zhao 2018", "Chen 2019"))
+    with pytest.raises(SystemExit):
+        main(["experiment", "zhao2018-mjx", "--help"])
+    text = capsys.readouterr().out
+    assert "--blind" in text and "--chunk" in text and "[default: 32]" in text
+    assert "--gaits" not in text and "--dataset" not in text  # luneckas2020's own flags stay its own
+    with pytest.raises(SystemExit):
+        main(["experiment", "luneckas2020", "--blind"])
+    assert "unrecognized arguments: --blind" in capsys.readouterr().err
+    # every help text names papers, not seed files, and every command shows its defaults
+    for entry in list(experiments().values()) + list(commands().values()):
+        assert "seed 0" not in entry.summary.lower() and "seed-0" not in entry.summary.lower()
+    with pytest.raises(SystemExit):
+        main(["evaluate", "--help"])
+    text = capsys.readouterr().out
+    assert "presets: " in text and "luneckas2020" in text and "[default: tripod]" in text
+
+
+def test_cli_reports_bad_input_before_any_work(capsys, tmp_path):
+    assert main(["terrain", "--preset", "volcano", "--png", str(tmp_path / "x.png")]) == 2
     assert "volcano" in capsys.readouterr().err
     assert main(["evaluate", "--batch", "0"]) == 2
-
-
-def test_luneckas_commands_report_bad_input(capsys, tmp_path):
-    """Errors before any simulation: bad n, gait, distance, missing dataset."""
+    assert main(["render", "--out", str(tmp_path / "w.txt")]) == 2  # checked before ~100 s of simulation
+    assert "--out=" in capsys.readouterr().err
+    assert main(["experiment", "zhao2018", "--png", str(tmp_path / "plot.jpg")]) == 2
+    assert "must end in .png" in capsys.readouterr().err
     assert main(["experiment", "luneckas2020", "--n", "0"]) == 2
     assert "n=0" in capsys.readouterr().err
-    assert main(["experiment", "luneckas2020", "--gaits", "trot"]) == 2
-    assert "trot" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["experiment", "luneckas2020", "--gaits", "trot"])
+    assert "'trot' is not one of" in capsys.readouterr().err
     assert main(["experiment", "luneckas2020", "--distances", "-1"]) == 2
     assert "distances" in capsys.readouterr().err
-    assert main(["predictor", "--data", str(tmp_path / "none.npz")]) == 2
-    assert "hexjax dataset" in capsys.readouterr().err
-    assert main(["predictor", "--lr", "0", "--data", str(tmp_path / "none.npz")]) == 2
+    assert main(["experiment", "luneckas2020-predictor", "--data", str(tmp_path / "none.npz")]) == 2
+    assert "luneckas2020-dataset" in capsys.readouterr().err
+    assert main(["experiment", "luneckas2020-predictor", "--lr", "0", "--data", str(tmp_path / "none.npz")]) == 2
     assert "learning_rate" in capsys.readouterr().err
+
+
+def test_terrain_png_shows_the_obstacles(tmp_path):
+    """The drawn height map shows the preset's boxes: in the middle of the map, each pixel's colour is read
+    back through the colormap to a height; a few per cent of them are obstacle tops (the boxes cover ~5 %
+    of a low-density field) and most are ground. A blank, an all-ground or a noise picture fails."""
+    import matplotlib
+    import matplotlib.image as mpimg
+    png = tmp_path / "t.png"
+    assert main(["terrain", "--preset", "low-large", "--seed", "2", "--png", str(png)]) == 0
+    img = mpimg.imread(str(png))[..., :3]
+    h, w = img.shape[:2]
+    mid = img[h // 4: 3 * h // 4, w // 5: 3 * w // 5].reshape(-1, 3)  # inside the map, left of the colorbar
+    lut = matplotlib.colormaps["terrain"](np.linspace(0, 1, 256))[:, :3]
+    d = np.linalg.norm(mid[:, None, :] - lut[None], axis=-1)
+    level = d.argmin(1) / 255.0  # the pixel's height as a fraction of the map's range
+    on_map = d.min(1) < 0.05
+    assert on_map.mean() > 0.9  # the middle is map, not axes or text
+    tops, ground = np.mean(level[on_map] > 0.6), np.mean(level[on_map] < 0.1)
+    assert 0.01 < tops < 0.2 and ground > 0.6, (tops, ground)

@@ -11,8 +11,9 @@ import pytest
 
 from hexjax.control.cpg import MODE_NAMES, TRIPOD_GROUP, CPGController, converter_points, linear_converter
 from hexjax.control.vdp import locked_state
-from hexjax.robot import forward_sign, get_robot, leg_fk
 from hexjax.sim.model import Obs
+from hexjax.world.presets import get_robot
+from hexjax.world.robot import forward_sign, leg_fk
 
 ROBOT = get_robot("yu2019")
 RF = 3  # the paper's Leg4: right front

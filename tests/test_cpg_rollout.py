@@ -7,11 +7,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from hexjax.control.cpg import CPGController
-from hexjax.mjcf import physics_for
-from hexjax.robot import get_robot
-from hexjax.sim.rollout import RolloutConfig, rollout, rollout_function
-from hexjax.terrain import get_terrain, sample
+from hexjax.control.cpg import CPGController, gait_fields
+from hexjax.sim.config import RolloutConfig, physics_for
+from hexjax.sim.rollout import rollout, rollout_function
+from hexjax.world.presets import get_robot, get_terrain
+from hexjax.world.terrain import sample
 
 ROBOT = get_robot("yu2019")
 FLAT = physics_for("flat")
@@ -27,7 +27,7 @@ def test_tripod_tetrapod_wave_walk_1m_on_flat_ground():
     speeds are 2 l gamma / ((gamma - 1) T_g) / 2: 2.8, 2.1 and 1.7 cm/s for l = 7 cm, T_g = 5 s."""
     ctrl = CPGController(ROBOT)
     gaits = ["tripod", "tetrapod", "wave"] * 2
-    params = _stack([ctrl.default_params(g) for g in gaits])
+    params = _stack([ctrl.default_params(**gait_fields(g)) for g in gaits])
     terrain = sample(get_terrain("flat"), jax.random.PRNGKey(0), len(gaits))
     s = rollout(ROBOT, terrain, ctrl, params, 66.0, jax.random.PRNGKey(3), physics=FLAT, params_batched=True)
     advance = np.asarray(s.end_pose[:, 0] - s.start_pose[:, 0])
@@ -118,7 +118,7 @@ def test_cpg_rollout_rejects_bad_params_before_tracing():
 
 
 def test_experiment_rejects_bad_input():
-    from hexjax.analysis.experiment import run_experiment
+    from hexjax.experiments.yu2019 import run_experiment
     with pytest.raises(ValueError, match="experiment 'yu2019-stairs' unknown"):
         run_experiment("yu2019-stairs")
     with pytest.raises(ValueError, match="batch=0"):

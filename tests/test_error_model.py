@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from hexjax.analysis import error_model as em
+from hexjax.experiments.luneckas2020 import error_model as em
 
 
 def test_equations_hand_worked():

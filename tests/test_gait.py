@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from hexjax.control.gait import GAITS, GaitController, leg_trajectory
-from hexjax.robot import body_to_leg, leg_fk, luneckas2020
+from hexjax.world.presets import luneckas2020
+from hexjax.world.robot import body_to_leg, leg_fk
 
 
 def test_leg_trajectory_hand_values():

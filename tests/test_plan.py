@@ -6,9 +6,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from hexjax.plan.avoid import (AvoidConfig, capacity_line, clearance, fan, octopus_params, penalty, plan,
-                               scores)
-from hexjax.plan.fields import TABLE2, dist_to_polyline, plan_batch, random_fields, zhao2018_experiment
+from hexjax.plan.avoid import AvoidConfig, capacity_line, clearance, fan, octopus_params, penalty, plan, scores
+from hexjax.experiments.zhao2018.table2 import TABLE2, zhao2018_experiment
+from hexjax.plan.fields import dist_to_polyline, plan_batch, random_fields
 
 
 def test_penalty_is_eq5():
@@ -132,7 +132,7 @@ def test_iterative_incenter_error_distribution():
     """Chen 2019 Steps 1-5 against the exact centre on 4 x 5000 random convex polygons: never better than
     exact (it is a feasible point), converged on triangles, and within 1e-3 of the exact radius on >= 99 %
     of quadrilaterals to hexagons (the rest stall: its step can only shrink, docs/planning.md)."""
-    from hexjax.plan.support import incenter_study
+    from hexjax.experiments.chen2019.incenter import incenter_study
     res = incenter_study(jax.random.PRNGKey(11), 5000)
     for k, d in res["by_sides"].items():
         assert d["iterative_exceeds_exact"] == 0, k
@@ -205,7 +205,7 @@ def test_torso_target_follows_the_foothold_plane_and_eq3():
 
 
 def _neutral_feet(robot):
-    from hexjax.robot import hip_positions, mount_yaws
+    from hexjax.world.robot import hip_positions, mount_yaws
     yaw = mount_yaws(robot)
     return hip_positions(robot)[:, :2] + robot.stance_radial * np.stack([np.cos(yaw), np.sin(yaw)], -1)
 
@@ -216,7 +216,7 @@ def test_tripod_motion_planner_keeps_margin_and_reach(alpha):
     delta_s inside its support triangle and every foot inside its workspace; the body moves along alpha
     (Eq. 8), and one candidate further would break a constraint (Eq. 7: the farthest valid move)."""
     from hexjax.plan.motion import TRIPODS, body_move, edge_margins, footholds, motion_params_for
-    from hexjax.robot import luneckas2020
+    from hexjax.world.presets import luneckas2020
     robot = luneckas2020()
     p = motion_params_for(robot)
     feet = jnp.asarray(_neutral_feet(robot), jnp.float32)
@@ -264,7 +264,7 @@ def test_swing_optimisation_clears_terrain_batched():
     constraint to 0.5 mm, respects the joint limits, and needs less effort than its semi-ellipse start
     where that start was feasible."""
     from hexjax.plan.swing import SwingConfig, optimise_swing
-    from hexjax.robot import luneckas2020
+    from hexjax.world.presets import luneckas2020
     robot = luneckas2020()
     h = robot.hip_height - robot.foot_radius
     start, end = jnp.array([0.13, -0.04, -h]), jnp.array([0.13, 0.04, -h])

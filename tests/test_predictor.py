@@ -4,7 +4,7 @@ last-error baseline on held-out sequences, and saves/loads exactly."""
 import numpy as np
 import pytest
 
-from hexjax.analysis import predictor as pr
+from hexjax.experiments.luneckas2020 import predictor as pr
 
 
 def _synthetic(n_seq=96, K=20, seed=0):

@@ -7,11 +7,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from hexjax.mjcf import PhysicsConfig, physics_for
 from hexjax.render import render_env, write_video
-from hexjax.robot import get_robot
+from hexjax.sim.config import PhysicsConfig, physics_for
 from hexjax.sim.model import sim_model
-from hexjax.terrain import Terrain
+from hexjax.world.presets import get_robot
+from hexjax.world.terrain import Terrain
 
 ROBOT = get_robot("luneckas2020")
 

@@ -6,9 +6,10 @@ import mujoco
 import numpy as np
 import pytest
 
-from hexjax.mjcf import PhysicsConfig, build_mjcf
-from hexjax.robot import (LEG_NAMES, get_robot, leg_fk, leg_ik, luneckas2020, neutral_feet_body,
-                          neutral_feet_leg_frame, yu2019)
+from hexjax.sim.config import PhysicsConfig
+from hexjax.sim.mjcf import build_mjcf
+from hexjax.world.presets import get_robot, luneckas2020, yu2019
+from hexjax.world.robot import LEG_NAMES, leg_fk, leg_ik, neutral_feet_body, neutral_feet_leg_frame
 
 
 @pytest.mark.parametrize("spec", [luneckas2020(), yu2019()])

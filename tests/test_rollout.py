@@ -5,13 +5,14 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from hexjax.analysis.metrics import goal_errors
+from hexjax.control.base import Controller
 from hexjax.control.gait import GaitController
-from hexjax.mjcf import PhysicsConfig
-from hexjax.robot import luneckas2020
+from hexjax.experiments.metrics import goal_errors
+from hexjax.sim.config import PhysicsConfig, RolloutConfig
 from hexjax.sim.model import SimModel, contact_geoms, mjx
-from hexjax.sim.rollout import RolloutConfig, make_mesh, rollout
-from hexjax.terrain import get_terrain, sample
+from hexjax.sim.rollout import make_mesh, rollout
+from hexjax.world.presets import get_terrain, luneckas2020
+from hexjax.world.terrain import sample
 
 FLAT = PhysicsConfig(slots_per_leg=0, torso_slots=0)
 
@@ -37,19 +38,18 @@ def test_flat_walk_straight_1m(gait):
     assert np.asarray(e.success).all()
 
 
-class _NanAfter:
+@dataclasses.dataclass(frozen=True)
+class _NanAfter(Controller):
     """A controller that commands NaN joint targets after `t_bad` s: the rollout must flag, not spread, it."""
 
-    def __init__(self, base, t_bad):
-        self.base, self.t_bad, self.dt = base, t_bad, base.dt
+    base: GaitController
+    t_bad: float
 
-    def __hash__(self):
-        return hash(("nan", self.base, self.t_bad))
+    @property
+    def dt(self):
+        return self.base.dt
 
-    def __eq__(self, o):
-        return isinstance(o, _NanAfter) and (o.base, o.t_bad) == (self.base, self.t_bad)
-
-    def default_params(self):
+    def params_defaults(self):
         return self.base.default_params()
 
     def init(self, params, key):
@@ -106,3 +106,5 @@ def test_invalid_rollout_inputs_raise_before_tracing():
                 physics=FLAT, mesh=make_mesh(jax.devices()[:2]))
     with pytest.raises(ValueError, match="timestep"):
         rollout(spec, terr, c, p, 1.0, jax.random.PRNGKey(0), physics=PhysicsConfig(timestep=0.03))
+    with pytest.raises(ValueError, match="derive it from hexjax.control.Controller"):
+        rollout(spec, terr, object(), p, 1.0, jax.random.PRNGKey(0))

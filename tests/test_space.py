@@ -5,10 +5,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from hexjax.analysis.space import Bound, make_space, to_physical, to_unconstrained
 from hexjax.control.cpg import CPGController
 from hexjax.control.tactile import TactileGaitController
-from hexjax.robot import luneckas2020, yu2019
+from hexjax.tune.space import Bound, make_space, to_physical, to_unconstrained
+from hexjax.world.presets import luneckas2020, yu2019
 
 
 def test_reparametrisation_round_trips_and_stays_in_bounds():
@@ -65,7 +65,7 @@ def test_bad_configs_raise_clear_errors():
 
 
 def test_tune_config_file_and_its_errors(tmp_path):
-    from hexjax.analysis.tune_config import load_tune_config
+    from hexjax.tune.config import load_tune_config
     cfg = load_tune_config("configs/tune/tactile_tripod.yaml")
     assert cfg.space().names == ("overcome_height", "overcome_length", "step_height", "step_length",
                                  "tactile_threshold")
@@ -90,8 +90,8 @@ def test_every_shipped_tune_config_builds():
     asks for (the CPG config's 4 solver iterations reach both the training and the held-out rollouts)."""
     import glob
 
-    from hexjax.analysis.tune import Problem
-    from hexjax.analysis.tune_config import load_tune_config
+    from hexjax.tune.config import load_tune_config
+    from hexjax.tune.grad import Problem
     paths = sorted(glob.glob("configs/tune/*.yaml"))
     assert len(paths) >= 2
     for path in paths:

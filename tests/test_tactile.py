@@ -7,9 +7,10 @@ import numpy as np
 import pytest
 
 from hexjax.control.gait import GaitController
-from hexjax.control.tactile import TactileGaitController
-from hexjax.robot import N_LEGS, body_to_leg, leg_fk, luneckas2020, neutral_feet_body
+from hexjax.control.tactile import TactileGaitController, overcome_height
 from hexjax.sim.model import Obs
+from hexjax.world.presets import luneckas2020
+from hexjax.world.robot import N_LEGS, body_to_leg, leg_fk, neutral_feet_body
 
 
 def _obs(force):
@@ -127,8 +128,10 @@ def test_paper_hand_rules_and_validation():
     p = c.default_params()
     assert float(p.overcome_length) == pytest.approx(2 * float(p.step_length))  # Eq. 6
     assert float(p.overcome_height) == pytest.approx(0.08 + 0.02)  # Eq. 7
-    assert float(c.default_params(max_obstacle_height=0.05).overcome_height) == pytest.approx(0.07)
-    assert float(c.default_params(enable=False).enable) == 0.0
+    assert float(overcome_height(0.05)) == pytest.approx(0.07)
+    assert float(c.default_params(enable=0.0).enable) == 0.0
+    with pytest.raises(ValueError, match=r"tactile.wingspan: unknown parameter"):
+        c.default_params(wingspan=1.0)
     with pytest.raises(ValueError, match="overcome_height"):
         c.validate_params(p.replace(overcome_height=jnp.asarray(-0.01)))
     with pytest.raises(ValueError, match="tactile_threshold"):
@@ -172,16 +175,17 @@ def test_mjx_pad_touch_raises_the_next_step():
     """In MJX: one wide, 5 cm high bar across the path. With the method, legs whose pads touch it take
     overcoming steps (gates recorded), the feet rise higher than the basic swing allows, and the robot ends
     further along than without the method on the same terrain."""
-    from hexjax.sim.rollout import RolloutConfig, rollout
-    from hexjax.terrain import Terrain
+    from hexjax.sim.config import RolloutConfig
+    from hexjax.sim.rollout import rollout
+    from hexjax.world.terrain import Terrain
 
     robot = luneckas2020()
     ctrl = TactileGaitController(robot, gait="tripod", max_obstacle_height=0.05, n_cycles=9)
     bar = Terrain(box_pos=jnp.array([[0.26, 0.0, 0.025]]), box_half=jnp.array([[0.012, 0.35, 0.025]]),
                   box_valid=jnp.array([True]), ground_z=jnp.zeros(()))
     terr = jax.tree_util.tree_map(lambda x: jnp.stack([x, x]), bar)
-    params = jax.tree_util.tree_map(lambda *a: jnp.stack(a), ctrl.default_params(enable=False),
-                                    ctrl.default_params(enable=True))
+    params = jax.tree_util.tree_map(lambda *a: jnp.stack(a), ctrl.default_params(enable=0.0),
+                                    ctrl.default_params(enable=1.0))
     _, dur = ctrl.duration_for(0.6)
     s = rollout(robot, terr, ctrl, params, dur, jax.random.PRNGKey(0), params_batched=True,
                 config=RolloutConfig(record=True, yaw_noise=0.0))

@@ -2,7 +2,8 @@ import jax
 import numpy as np
 import pytest
 
-from hexjax.terrain import PRESETS, SEED000_CATEGORIES, get_terrain, heightmap, obstacle_circles, sample
+from hexjax.world.presets import get_terrain
+from hexjax.world.terrain import LUNECKAS2020_CATEGORIES, PRESETS, heightmap, obstacle_circles, sample
 
 B = 64
 
@@ -17,7 +18,7 @@ def _nearest_neighbour(pos, valid):
     return np.concatenate(out)
 
 
-@pytest.mark.parametrize("name", SEED000_CATEGORIES)
+@pytest.mark.parametrize("name", LUNECKAS2020_CATEGORIES)
 def test_seed000_categories_match_definitions(name):
     """Luneckas 2020 Sect. 2.2: R >= 15 cm (low) or 10 < R < 15 cm (high) between obstacle centres;
     H in 3-5 cm (small) or 6-8 cm (large); length 2-3 cm."""

@@ -1,5 +1,5 @@
-"""Issue 5: gradients through the MJX rollout agree with central differences per parameter group; the
-objective's terms; tuning runs are deterministic and resume from their checkpoints; CLI config errors."""
+"""Gradients through the MJX rollout agree with central differences per parameter group; the objective's
+terms; tuning runs are deterministic and resume from their checkpoints; CMA-ES improves; CLI config errors."""
 
 import dataclasses
 import json
@@ -11,16 +11,19 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from hexjax.analysis.gradcheck import central_differences, group_cosines
-from hexjax.analysis.space import make_space
-from hexjax.analysis.tune import per_env_objective, tune
-from hexjax.analysis.tune_config import TuneConfig
 from hexjax.control.cpg import CPGController
 from hexjax.control.tactile import TactileGaitController
-from hexjax.mjcf import physics_for
-from hexjax.robot import luneckas2020, yu2019
-from hexjax.sim.rollout import RolloutConfig, Summary, rollout_function
-from hexjax.terrain import get_terrain, sample
+from hexjax.sim.config import RolloutConfig, physics_for
+from hexjax.sim.rollout import rollout_function
+from hexjax.sim.step import Summary
+from hexjax.tune.config import TuneConfig
+from hexjax.tune.es import tune_es
+from hexjax.tune.grad import tune
+from hexjax.tune.gradcheck import check, travel_objective
+from hexjax.tune.objective import per_env_objective
+from hexjax.tune.space import make_space
+from hexjax.world.presets import get_terrain, luneckas2020, yu2019
+from hexjax.world.terrain import sample
 
 # the tactile preset's parameter groups
 GROUPS = {"gait": ["step_length", "step_height", "swing_time"],
@@ -29,18 +32,11 @@ GROUPS = {"gait": ["step_length", "step_height", "swing_time"],
 
 def _cosines(obj, u0, groups, eps=1e-3):
     """Per group: (cosine of the autodiff gradient of obj at u0 with central differences, autodiff, FD)."""
-    g = jax.jit(jax.grad(obj))(u0)
-    res = group_cosines(g, central_differences(jax.jit(obj), u0, eps), groups)
+    _, by_eps = check(obj, u0, groups, (eps,))
+    res = by_eps[eps]
     for group, (_, a, b) in res.items():
         assert np.all(np.isfinite(a)) and np.linalg.norm(b) > 0, (group, a, b)
     return res
-
-
-def _travel_objective(fn, model, space, p, terr, keys):
-    def obj(u):
-        s = fn(model, space.apply(u, p), terr, keys)
-        return jnp.mean(s.travel[:, 0]) + 0.3 * jnp.mean(s.travel[:, 1]) + 0.1 * jnp.mean(s.travel[:, 2])
-    return obj
 
 
 def test_gradient_matches_central_differences_per_group():
@@ -59,7 +55,7 @@ def test_gradient_matches_central_differences_per_group():
     keys = jax.random.split(jax.random.PRNGKey(1), 4)
     model, fn = rollout_function(robot, ctrl, 0.4, physics=physics_for(spec.kind),
                                  config=RolloutConfig(settle_time=0.1, reversible_solver=True))
-    res = _cosines(_travel_objective(fn, model, space, p, terr, keys), space.init(p), GROUPS)
+    res = _cosines(travel_objective(fn, model, space, p, terr, keys), space.init(p), GROUPS)
     for group, (cos, a, b) in res.items():
         assert cos >= 0.9, f"{group}: cosine {cos:.3f}, autodiff {a}, central differences {b}"
 
@@ -88,7 +84,7 @@ def test_cpg_gradient_matches_central_differences():
     groups = {"converter": ["lc_trim", "clearance"], "contact thresholds": ["f_contact"],
               "elevator": ["elevated_clearance", "ramp_time"]}
     assert sorted(sum(groups.values(), [])) == sorted(space.names)
-    res = _cosines(_travel_objective(fn, model, space, p, terr, keys), space.init(p), groups)
+    res = _cosines(travel_objective(fn, model, space, p, terr, keys), space.init(p), groups)
     for group, (cos, a, b) in res.items():
         print(group, f"cosine {cos:.3f} |autodiff| {np.linalg.norm(a):.3g} |FD| {np.linalg.norm(b):.3g}")
         assert cos >= 0.9, f"{group}: cosine {cos:.3f}, autodiff {a}, central differences {b}"
@@ -161,13 +157,12 @@ def test_cli_tune_rejects_bad_configs(capsys):
                       (["params={overcome_height: {min: 0.1, max: 0.02}}"], "min=0.1 must be < max=0.02"),
                       (["solver_iterations=0"], "tune.solver_iterations=0"),
                       (["steps"], "use key=value")):
-        rc = main(["tune", "--config", "configs/tune/tactile_tripod.yaml"] + sum([["--set", s] for s in sets], []))
+        rc = main(["tune", "--config", "tactile_tripod"] + sum([["--set", s] for s in sets], []))
         assert rc == 2
         assert msg in capsys.readouterr().err
 
 
 def test_es_baseline_runs_on_the_same_objective_and_is_deterministic(tmp_path):
-    from hexjax.analysis.tune import tune_es
     cfg = _small_config(es_population=2)
     a = tune_es(cfg, str(tmp_path / "a"), rollouts=8, progress=False)  # 2 generations of 2 x 2 rollouts
     b = tune_es(cfg, str(tmp_path / "b"), rollouts=8, progress=False)

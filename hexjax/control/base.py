@@ -1,25 +1,77 @@
-"""The controller protocol shared by every hexjax controller (see DESIGN.md).
+"""The controller protocol: what the rollout, the Brax env and the tuners call on every hexjax controller
+(DESIGN.md, "Layers"; STYLE.md, "params vs state vs static").
 
-A controller is a frozen (hashable) object holding static configuration, with two pure methods:
-    init(params, key) -> state
-    step(params, state, obs) -> (state, action)
-`params` is a pytree of traced, tunable numbers (what `jax.grad` reaches); `state` is a pytree of
-memory; `obs` is `hexjax.sim.model.Obs`; `action` is (18,) joint position targets, rad. The control
-period is part of the static configuration (`dt`), so `step` needs no time argument.
+A controller is a frozen (hashable) dataclass deriving from `Controller`. Its fields are static
+configuration (the robot, the gait pattern, the hard or smooth form, the control period `dt`): changing one
+recompiles. Everything numeric that may be tuned, batched per env or differentiated lives in a `params`
+pytree; everything a controller remembers between steps lives in a `state` pytree:
+
+    default_params(**overrides) -> params      the papers' numbers, fields replaced by `overrides`
+    validate_params(params)                    host-side checks before tracing (ValueError naming the field)
+    init(params, key) -> state                 one env's initial memory
+    step(params, state, obs) -> (state, action)   one control period; obs is `hexjax.sim.model.Obs`, action
+                                               the (18,) joint position targets, rad
+    initial_action(params) -> (18,) or None    the joint targets to settle in (None: the robot's stance)
+    trace(state, obs) -> pytree or None        what `RolloutConfig(record=True)` keeps per step
+
+`init`, `step`, `initial_action` and `trace` are pure JAX on one env; the rollout vmaps them.
 """
 
 from __future__ import annotations
 
-from typing import Any, Protocol, Tuple
+import dataclasses
+from typing import Any, Mapping, Optional, Tuple
 
 import jax
+import jax.numpy as jnp
 
 
-class Controller(Protocol):
+def replace_fields(params, overrides: Mapping[str, Any], prefix: str):
+    """`params` (a flax struct dataclass) with the named fields replaced. A numeric override takes the
+    field's dtype; a pytree override (a nested params struct, a DEM) is put in as it is. An unknown name
+    raises ValueError naming `prefix.name` and the fields there are."""
+    names = {f.name for f in dataclasses.fields(params)}
+    for k in overrides:
+        if k not in names:
+            raise ValueError(f"{prefix}.{k}: unknown parameter; the fields are {sorted(names)}")
+
+    def conv(k, v):
+        if isinstance(v, (int, float, list, tuple)) or hasattr(v, "dtype"):
+            return jnp.asarray(v, getattr(getattr(params, k), "dtype", None))
+        return v
+
+    return params.replace(**{k: conv(k, v) for k, v in overrides.items()})
+
+
+class Controller:
+    """Base of every hexjax controller (see the module docstring). Subclasses are frozen dataclasses that
+    define `dt`, `params_defaults`, `init` and `step`; the other hooks have defaults here."""
+
     dt: float
+    #: prefix of this controller's params in error messages ("gait", "tactile", "cpg", ...)
+    params_prefix: str = "params"
 
-    def default_params(self) -> Any: ...
+    def params_defaults(self) -> Any:
+        """The params pytree with the papers' numbers (subclasses)."""
+        raise NotImplementedError
 
-    def init(self, params: Any, key: jax.Array) -> Any: ...
+    def default_params(self, **overrides) -> Any:
+        """`params_defaults()` with the fields named in `overrides` replaced (a float or an array each)."""
+        return replace_fields(self.params_defaults(), overrides, self.params_prefix)
 
-    def step(self, params: Any, state: Any, obs: Any) -> Tuple[Any, jax.Array]: ...
+    def validate_params(self, params) -> None:
+        """Host-side checks on concrete params (shared or batched) before tracing; nothing by default."""
+
+    def init(self, params, key) -> Any:
+        raise NotImplementedError
+
+    def step(self, params, state, obs) -> Tuple[Any, jax.Array]:
+        raise NotImplementedError
+
+    def initial_action(self, params) -> Optional[jax.Array]:
+        """(18,) joint targets to settle in before the first step; None: the robot's neutral stance."""
+        return None
+
+    def trace(self, state, obs) -> Any:
+        """A pytree recorded per control step with `RolloutConfig(record=True)`; None: nothing."""
+        return None

@@ -1,6 +1,5 @@
-"""The seed-000 leg trajectory and the tripod / wave gaits, mapped to joints by inverse kinematics.
-
-Luneckas et al. 2020, Eqs. 2-4 and Sect. 3.1 / Fig. 13.
+"""The leg trajectory of Luneckas et al. 2020 (Eqs. 2-4) and its tripod / wave gaits (Sect. 3.1, Fig. 13),
+mapped to joints by inverse kinematics.
 """
 
 from __future__ import annotations
@@ -14,7 +13,9 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from hexjax.robot import RobotSpec, body_to_leg, leg_ik, neutral_feet_body
+from hexjax.control.base import Controller
+from hexjax.plan.support import torso_pitch_roll
+from hexjax.world.robot import RobotSpec, body_to_leg, leg_ik, neutral_feet_body
 
 
 @dataclasses.dataclass(frozen=True)
@@ -100,8 +101,8 @@ def check_open_ranges(prefix: str, params, checks) -> None:
             raise ValueError(f"{prefix}.{f}={v.tolist()!r}: must be in ({lo}, {hi}]")
 
 
-class PatternClock:
-    """What the seed-000 gait controllers share: a gait pattern (Fig. 13), the check of the gait name and
+class PatternClock(Controller):
+    """What the Luneckas 2020 gait controllers share: a gait pattern (Fig. 13), the check of the gait name and
     control period, and the cycle bookkeeping for a walk of a given distance. Mixed into frozen dataclasses
     that define `gait` and `dt`; `default_params()` must return params with `step_length` and `swing_time`
     (scalars, or batched: their mean sets the walk's length)."""
@@ -136,7 +137,7 @@ class PatternClock:
 
 @dataclasses.dataclass(frozen=True)
 class GaitController(PatternClock):
-    """Open-loop seed-000 gait: feet follow `leg_trajectory`, joints track them through IK.
+    """Open-loop Luneckas 2020 gait: feet follow `leg_trajectory`, joints track them through IK.
 
     Start and stop: the printed trajectory puts half the legs at -l/2 and half at +l/2 at t = 0, a jump
     the servos would slide the feet through. So the horizontal stroke grows linearly from 0 over the
@@ -153,7 +154,10 @@ class GaitController(PatternClock):
     def __post_init__(self):
         self._check_gait_and_dt()
 
-    def default_params(self) -> GaitParams:
+    params_prefix = "gait"
+
+    def params_defaults(self) -> GaitParams:
+        """The paper's stroke and swing time for the gait (`GaitPattern`), h = `step_height`, forward."""
         p = self.pattern
         return GaitParams(step_length=jnp.asarray(p.step_length), step_height=jnp.asarray(self.step_height),
                           swing_time=jnp.asarray(p.swing_time), direction=jnp.asarray(0.0),
@@ -183,7 +187,12 @@ class GaitController(PatternClock):
         return neutral + offs
 
     def step(self, params: GaitParams, state: GaitState, obs) -> Tuple[GaitState, jax.Array]:
-        del obs  # open loop: the seed-000 baseline walks blind
+        del obs  # open loop: the Luneckas 2020 baseline walks blind
         feet = self.foot_targets(params, state.t)
         q, _ = leg_ik(self.robot, body_to_leg(self.robot, feet))
         return GaitState(t=state.t + self.dt), q.reshape(-1)
+
+    def trace(self, state: GaitState, obs):
+        """Recorded per step: the measured torso pitch and roll (rad), as in Chen 2019 Fig. 6."""
+        p, r = torso_pitch_roll(obs.torso_quat)
+        return jnp.stack([p, r])

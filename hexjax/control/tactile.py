@@ -1,4 +1,4 @@
-"""Tactile obstacle overcoming (Luneckas et al. 2020, seed 000, Sect. 2.4, Eqs. 5-7, Fig. 7).
+"""Tactile obstacle overcoming (Luneckas et al. 2020, Sect. 2.4, Eqs. 5-7, Fig. 7).
 
 Each leg carries a tactile pad on the front of its shin. When the pad of leg i fires, the *next* step of
 leg i is an obstacle-overcoming step, longer and higher than the basic one:
@@ -37,7 +37,7 @@ import numpy as np
 from flax import struct
 
 from hexjax.control.gait import PatternClock, check_open_ranges
-from hexjax.robot import N_LEGS, RobotSpec, body_to_leg, leg_ik, neutral_feet_body
+from hexjax.world.robot import N_LEGS, RobotSpec, body_to_leg, leg_ik, neutral_feet_body
 
 
 @struct.dataclass
@@ -70,9 +70,14 @@ class TactileState:
     n_overcome: jax.Array  # (6,) overcoming steps taken (sum of gates)
 
 
+def overcome_height(max_obstacle_height):
+    """h_k = H + 2 cm (Luneckas 2020 Eq. 7) for the known maximum obstacle height H (m)."""
+    return max_obstacle_height + 0.02
+
+
 @dataclasses.dataclass(frozen=True)
 class TactileGaitController(PatternClock):
-    """The seed-000 gait (tripod or wave) with the tactile obstacle-overcoming switch.
+    """The Luneckas 2020 gait (tripod or wave) with the tactile obstacle-overcoming switch.
 
     robot: RobotSpec; gait: 'tripod' or 'wave'; max_obstacle_height: H of Eq. 7 (m), the one thing the
     method assumes known; step_height: h_i (m); dt: control period (s); smooth: differentiable gate;
@@ -94,14 +99,17 @@ class TactileGaitController(PatternClock):
         if not (math.isfinite(self.step_height) and 0 < self.step_height <= 0.15):
             raise ValueError(f"step_height={self.step_height!r}: must be in (0, 0.15] m")
 
-    def default_params(self, enable: bool = True, max_obstacle_height: float | None = None) -> TactileParams:
-        """The paper's hand rules: l_i from the gait's steps per metre, l_k = 2 l_i, h_k = H + 2 cm."""
+    params_prefix = "tactile"
+
+    def params_defaults(self) -> TactileParams:
+        """The paper's hand rules: l_i from the gait's steps per metre, l_k = 2 l_i (Eq. 6), h_k = H + 2 cm
+        (Eq. 7) with H = `max_obstacle_height`, the method on (`enable` = 1; 0 for the basic gait)."""
         p = self.pattern
-        H = self.max_obstacle_height if max_obstacle_height is None else max_obstacle_height
         f = lambda x: jnp.asarray(x, jnp.float32)
         return TactileParams(step_length=f(p.step_length), step_height=f(self.step_height), swing_time=f(p.swing_time),
-                             direction=f(0.0), overcome_length=f(2 * p.step_length), overcome_height=f(H + 0.02),
-                             tactile_threshold=f(0.3), temperature=f(0.05), enable=f(1.0 if enable else 0.0))
+                             direction=f(0.0), overcome_length=f(2 * p.step_length),
+                             overcome_height=f(overcome_height(self.max_obstacle_height)),
+                             tactile_threshold=f(0.3), temperature=f(0.05), enable=f(1.0))
 
     def validate_params(self, params: TactileParams) -> None:
         """Host-side checks on concrete params (shared or batched), before tracing."""

@@ -1,8 +1,6 @@
-"""Obstacle fields for the avoidance planner: Zhao 2018's experiment 1 (Tables 1-2) and random fields in
-batch, each with a collision-free lane by construction.
-
-`zhao2018_experiment` plans experiment 1 and compares each plan cycle with Table 2; `random_fields` draws
-N fields from one PRNG key; `plan_batch` plans them all in one jitted, vmapped call and summarises.
+"""Obstacle fields for the avoidance planner (Zhao 2018): random fields in batch, each with a collision-free
+lane by construction. `random_fields` draws N fields from one PRNG key (`small_fields`: scaled to the
+Luneckas 2020 robot); `plan_batch` plans them all in one jitted, vmapped call and summarises.
 """
 
 from __future__ import annotations
@@ -16,72 +14,6 @@ import numpy as np
 from flax import struct
 
 from hexjax.plan.avoid import AvoidConfig, AvoidParams, check_inputs, octopus_params, plan
-
-# Zhao 2018 Table 1 (x, y, radius, m) and Table 2 (robot position after each plan cycle, m).
-TABLE1 = np.array([[0.463, 1.338, 0.268], [-1.027, 3.236, 0.198], [0.538, 4.769, 0.224], [-1.012, 6.366, 0.202]])
-TABLE2 = np.array([[-0.371, 0.371], [-0.546, 1.023], [-0.489, 1.749], [-0.314, 2.401], [-0.014, 2.920],
-                   [-0.012, 3.669], [-0.312, 4.189], [-0.487, 4.841], [-0.312, 5.493], [-0.012, 6.013],
-                   [-0.008, 6.761], [-0.003, 7.509], [0.002, 8.057]])
-START, TARGET = np.array([0.0, 0.0]), np.array([0.0, 8.0])  # Sect. 5, experiment 1
-
-
-def zhao2018_experiment(params: AvoidParams | None = None, cfg: AvoidConfig = AvoidConfig()) -> Dict:
-    """Experiment 1 (Sect. 5: start (0, 0), target (0, 8), Table 1's obstacles, d_min 0.05 m, d_max 0.2 m):
-    the planned positions beside Table 2, and the checks of the acceptance (reached, no overlap)."""
-    p = params or octopus_params()
-    c, r, v = TABLE1[:, :2], TABLE1[:, 2], np.ones(len(TABLE1), bool)
-    check_inputs(START, TARGET, c, r, v, p, cfg)
-    out = jax.jit(lambda: plan(START, TARGET, c, r, v, p, cfg))()
-    n = int(out.cycles)
-    path = np.asarray(out.path)[1:n + 1]
-    rows = []
-    for i in range(max(n, len(TABLE2))):
-        ours = path[i].tolist() if i < n else None
-        paper = TABLE2[i].tolist() if i < len(TABLE2) else None
-        dist = float(np.linalg.norm(path[i] - TABLE2[i])) if ours is not None and paper is not None else None
-        k = int(np.asarray(out.chosen)[i]) if i < n else -1
-        n_fan = int(np.asarray(p.angles).shape[-1])
-        ang = None if k < 0 else ("target" if k == n_fan else float(np.degrees(np.asarray(p.angles)[k])))
-        rows.append({"cycle": i + 1, "planned": ours, "table2": paper, "distance": dist, "direction_deg": ang})
-    d = [row["distance"] for row in rows if row["distance"] is not None]
-    return {"start": START.tolist(), "target": TARGET.tolist(), "obstacles": TABLE1.tolist(),
-            "d_min": float(p.d_min), "d_max": float(p.d_max), "n_T": cfg.n_T,
-            "robot_circles": {"offsets": np.asarray(p.robot_offsets).tolist(), "radii": np.asarray(p.robot_radii).tolist()},
-            "reached": bool(out.reached), "cycles": n, "cycles_table2": len(TABLE2),
-            "min_clearance": float(out.min_clearance), "overlap": bool(out.min_clearance <= 0),
-            "path_length": float(out.length), "mean_distance_to_table2": float(np.mean(d)),
-            "max_distance_to_table2": float(np.max(d)), "cycles_table": rows,
-            "path": np.asarray(out.path)[: n + 1].tolist()}
-
-
-def plot_zhao2018(result: Dict, png: str) -> None:
-    """Fig. 18-like: obstacles (circles), the planned path with the robot's circles at each plan cycle,
-    and Table 2's recorded positions."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    fig, ax = plt.subplots(figsize=(5, 8))
-    for x, y, rad in result["obstacles"]:
-        ax.add_patch(plt.Circle((x, y), rad, color="tab:red", alpha=0.5))
-    path = np.asarray(result["path"])
-    offs, radii = np.asarray(result["robot_circles"]["offsets"]), np.asarray(result["robot_circles"]["radii"])
-    for q in path:
-        for o, rr in zip(offs, radii):
-            ax.add_patch(plt.Circle(q + o, rr, fill=False, color="tab:blue", lw=0.4, alpha=0.5))
-    ax.plot(path[:, 0], path[:, 1], "-o", color="k", ms=3, label="hexjax plan cycles")
-    t2 = np.vstack([[0.0, 0.0], TABLE2])
-    ax.plot(t2[:, 0], t2[:, 1], "--s", color="tab:green", ms=3, label="Table 2 (recorded)")
-    ax.plot(*result["target"], "*", color="tab:orange", ms=12, label="target")
-    ax.set_aspect("equal")
-    ax.set_xlim(-2.2, 1.8)
-    ax.set_xlabel("x (m)")
-    ax.set_ylabel("y (m)")
-    ax.set_title(f"Zhao 2018 experiment 1: {result['cycles']} cycles, min clearance "
-                 f"{100 * result['min_clearance']:.1f} cm")
-    ax.legend(loc="lower right", fontsize=7)
-    fig.tight_layout()
-    fig.savefig(png, dpi=120)
-    plt.close(fig)
 
 
 @struct.dataclass
@@ -130,6 +62,27 @@ def random_fields(key, n: int, n_obstacles: int = 16, length: float = 8.0, width
     radii = jax.random.uniform(ks[4], (n, n_obstacles), minval=radius_range[0], maxval=radius_range[1])
     valid = dist_to_polyline(centres, lane) > lane_half_width + radii
     return Fields(start=start, target=target, centres=centres, radii=radii, valid=valid, lane=lane)
+
+
+def small_fields(key, n: int, robot_radius: float, d_max: float, n_obstacles: int = 40, length: float = 2.0,
+                 width: float = 1.6) -> Fields:
+    """`random_fields` scaled to the Luneckas 2020 robot and turned to face +x: start (0, 0), target (2, U(-0.3,
+    0.3)); `n_obstacles` circles of radius 0.05-0.12 m drawn in a 1.6 m wide corridor, of which those within
+    robot radius + d_max + 2 cm of a lane swaying up to 0.6 m are dropped (~10.6 stay; the straight line is
+    blocked in ~35 % of fields), so a collision-free path exists by construction."""
+    f = random_fields(key, n, n_obstacles=n_obstacles, length=length, width=width, radius_range=(0.05, 0.12),
+                      lane_points=3, lane_sway=0.6, lane_half_width=robot_radius + d_max + 0.02,
+                      target_sway=0.3)
+    turn = lambda xy: jnp.stack([xy[..., 1], -xy[..., 0]], -1)  # (x, y) -> (y, -x): +y ahead becomes +x
+    return Fields(start=turn(f.start), target=turn(f.target), centres=turn(f.centres), radii=f.radii,
+                  valid=f.valid, lane=turn(f.lane))
+
+
+def straight_line_blocked(fields: Fields, robot_radius: float) -> np.ndarray:
+    """(N,) bool: a robot circle walking the straight line from start to target would overlap an obstacle."""
+    line = jnp.stack([fields.start, fields.target], 1)
+    d = dist_to_polyline(fields.centres, line)
+    return np.asarray(jnp.any((d < fields.radii + robot_radius) & fields.valid, -1))
 
 
 def plan_batch(fields: Fields, params: AvoidParams | None = None, cfg: AvoidConfig = AvoidConfig(),

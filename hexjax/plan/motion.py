@@ -30,7 +30,7 @@ import numpy as np
 from flax import struct
 
 from hexjax.plan.support import side_distances
-from hexjax.robot import RobotSpec, hip_positions, leg_ik
+from hexjax.world.robot import RobotSpec, hip_positions, leg_ik
 
 TRIPODS = (np.array([0, 2, 4]), np.array([1, 5, 3]))  # CCW in the torso frame: (LF, LH, RM), (LM, RH, RF)
 

@@ -1,5 +1,6 @@
-"""Support planning of Chen et al. 2019 (seed 002), Sect. 2.2: the centre of the largest circle inside the
-support polygon, found by the paper's iteration (Steps 1-5, Eqs. 1-2) and, beside it, exactly.
+"""Support planning of Chen et al. 2019, Sect. 2.2: the centre of the largest circle inside the support
+polygon, found by the paper's iteration (Steps 1-5, Eqs. 1-2) and, beside it, exactly; the torso target over
+the footholds (Sect. 2.2.1, Eq. 3), clamped splines (Eqs. 4-5), and foothold candidates on a DEM.
 
 Polygons are convex, counter-clockwise, as (..., K, 2) vertices with a (..., K) `valid` mask (the valid
 vertices first), so triangles and quadrilaterals share one shape and `vmap`.
@@ -26,6 +27,8 @@ import itertools
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+from hexjax.world.dem import DEM, NEIGHBOURS_3X3, dem_lookup, snap
 
 
 def _side_geometry(poly, valid):
@@ -179,29 +182,6 @@ def random_polygons(key, n: int, k: int, k_max: int | None = None, min_gap: floa
     return jnp.concatenate([poly, pad], 1), valid
 
 
-def incenter_study(key, n: int = 100_000, sides=(3, 4, 5, 6), iterations: int = 60) -> dict:
-    """The iterative incenter's error against the exact one over n random polygons per side count:
-    relative radius shortfall (r_exact - r_iter) / r_exact and centre offset / r_exact, as percentiles."""
-    out = {"n_per_sides": n, "iterations": iterations, "by_sides": {}}
-    k_max = max(sides)
-    it = jax.jit(jax.vmap(lambda p, v: incenter_iterative(p, v, iterations)))
-    ex = jax.jit(jax.vmap(incenter_exact))
-    for j, k in enumerate(sides):
-        poly, valid = random_polygons(jax.random.fold_in(key, j), n, k, k_max)
-        ci, ri = it(poly, valid)
-        ce, re = ex(poly, valid)
-        rel = np.asarray((re - ri) / re)
-        off = np.asarray(jnp.linalg.norm(ci - ce, axis=-1) / re)
-        q = [50, 90, 99, 99.9, 100]
-        out["by_sides"][str(k)] = {
-            "radius_shortfall": {f"p{x:g}": float(np.percentile(rel, x)) for x in q},
-            "centre_offset": {f"p{x:g}": float(np.percentile(off, x)) for x in q},
-            "iterative_exceeds_exact": int(np.sum(rel < -1e-4)),
-            "within_1e-3": float(np.mean(rel <= 1e-3)),
-        }
-    return out
-
-
 # Torso target and joint trajectories (Chen 2019 Sects. 2.2.1-2.2.2) -----------------------------------------
 def foothold_plane(footholds, valid):
     """Least-squares plane z = g_x x + g_y y + c through the valid footholds (K, 3): (g_x, g_y, c)."""
@@ -272,3 +252,22 @@ def clamped_spline(t, y):
         return out.reshape(tq.shape + y.shape[1:])
 
     return s
+
+
+# Footholds on a DEM (Chen 2019 Sect. 2.2, the loop of `hexjax.control.support_gait`) -----------------------
+def foothold_candidates(dem: DEM, nominal, search: int, w_dist: float, w_height: float):
+    """The DEM cell centres within `search` cells of `nominal` (2,) and their costs: spread of the 3 x 3
+    neighbourhood + w_dist |offset| + w_height height. Returns (xy (C, 2), ground height (C,), cost (C,))."""
+    r = np.arange(-search, search + 1, dtype=np.float32)
+    offs = np.stack(np.meshgrid(r, r, indexing="ij"), -1).reshape(-1, 2)
+    cand = snap(dem, nominal) + jnp.asarray(offs) * dem.cell  # (C, 2)
+    nb = dem_lookup(dem, cand[:, None, :] + jnp.asarray(NEIGHBOURS_3X3) * dem.cell)  # (C, 9)
+    h = nb[:, 4]
+    cost = (jnp.max(nb, -1) - jnp.min(nb, -1)) + w_dist * jnp.linalg.norm(cand - nominal, axis=-1) + w_height * h
+    return cand, h, cost
+
+
+def max_along(dem: DEM, a, b, n: int = 10):
+    """Highest DEM cell within one cell of the chord a -> b (2,)."""
+    pts = a + (b - a) * jnp.linspace(0.0, 1.0, n)[:, None]
+    return jnp.max(dem_lookup(dem, pts[:, None, :] + jnp.asarray(NEIGHBOURS_3X3) * dem.cell))

@@ -29,7 +29,7 @@ import jax.numpy as jnp
 import optax
 
 from hexjax.plan.support import clamped_spline
-from hexjax.robot import RobotSpec, leg_fk, leg_ik
+from hexjax.world.robot import RobotSpec, leg_fk, leg_ik
 
 
 @dataclasses.dataclass(frozen=True)

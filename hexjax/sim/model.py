@@ -10,7 +10,6 @@ Only geom_pos / geom_size of the slot geoms differ per env (a batch axis on thos
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import functools
 import io
 
@@ -20,9 +19,10 @@ import mujoco
 import numpy as np
 from flax import struct
 
-from hexjax.mjcf import PARKED_Z, SENSOR_MATCHES, PhysicsConfig, build_mjcf, sensor_layout
-from hexjax.robot import LEG_NAMES, N_LEGS, RobotSpec, neutral_feet_body
-from hexjax.terrain import Terrain
+from hexjax.sim.config import PhysicsConfig, SensorConfig
+from hexjax.sim.mjcf import PARKED_Z, SENSOR_MATCHES, build_mjcf, sensor_layout
+from hexjax.world.robot import LEG_NAMES, N_LEGS, RobotSpec, neutral_feet_body
+from hexjax.world.terrain import Terrain
 
 # mujoco.mjx prints "Failed to import warp" when the optional MuJoCo Warp backend is absent; hexjax uses
 # the JAX implementation, so that notice is noise on every command.
@@ -54,12 +54,6 @@ class Obs:
     tactile_force: jax.Array
     tactile: jax.Array
     time: jax.Array
-
-
-@dataclasses.dataclass(frozen=True)
-class SensorConfig:
-    contact_threshold: float = 0.5  # N
-    tactile_threshold: float = 0.3  # N
 
 
 IMPLS = ("jax", "warp")

@@ -1,0 +1,55 @@
+"""hexjax: differentiable, vectorised hexapod walking on JAX and MuJoCo MJX (docs/architecture.md).
+
+The public names below load on first use, so `import hexjax` (and `hexjax --help`) imports no JAX.
+"""
+
+import importlib as _importlib
+import os as _os
+
+from hexjax import cache as _cache
+
+# On obstacle terrain (convex box collisions inside the scanned, vmapped step) XLA:CPU's concurrency-
+# optimized scheduler left every worker thread waiting for work and the process idle in
+# block_until_ready forever: 3 of 5 runs on 2 cores with jax 0.10.2. Neither async dispatch off,
+# single-threaded Eigen, nor replacing lax.top_k cured it; this flag did. It must be set before jax
+# creates its CPU client; HEXJAX_KEEP_XLA_FLAGS=1 leaves XLA_FLAGS untouched.
+if not _os.environ.get("HEXJAX_KEEP_XLA_FLAGS"):
+    _flags = _os.environ.get("XLA_FLAGS", "")
+    if "xla_cpu_enable_concurrency_optimized_scheduler" not in _flags:
+        _os.environ["XLA_FLAGS"] = (_flags + " --xla_cpu_enable_concurrency_optimized_scheduler=false").strip()
+
+_cache.enable()
+
+_EXPORTS = {
+    "hexjax.world.robot": ["RobotSpec", "leg_fk", "leg_ik"],
+    "hexjax.world.presets": ["get_robot", "get_terrain", "luneckas2020", "yu2019", "chen2019"],
+    "hexjax.world.terrain": ["Terrain", "TerrainSpec", "obstacle_circles", "pad_terrain", "sample"],
+    "hexjax.sim.config": ["PhysicsConfig", "RolloutConfig", "SensorConfig"],
+    "hexjax.sim.mjcf": ["build_mjcf"],
+    "hexjax.sim.model": ["Obs", "SimModel", "sim_model"],
+    "hexjax.sim.step": ["Summary"],
+    "hexjax.sim.rollout": ["RolloutStats", "make_mesh", "rollout", "rollout_function"],
+    "hexjax.control.base": ["Controller"],
+    "hexjax.control.gait": ["GAITS", "GaitController", "GaitParams"],
+    "hexjax.control.tactile": ["TactileGaitController", "TactileParams", "TactileState"],
+    "hexjax.control.cpg": ["CPG_GAITS", "CPGController", "CPGParams", "CPGState", "gait_fields"],
+    "hexjax.control.vdp": ["NetworkParams"],
+    "hexjax.control.avoid_gait": ["AvoidGaitController"],
+    "hexjax.control.support_gait": ["SupportPlanController"],
+    "hexjax.experiments.metrics": ["goal_errors"],
+}
+_WHERE = {name: module for module, names in _EXPORTS.items() for name in names}
+__all__ = sorted(_WHERE)
+__version__ = "0.1.0"
+
+
+def __getattr__(name):
+    if name in _WHERE:
+        value = getattr(_importlib.import_module(_WHERE[name]), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module 'hexjax' has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted(list(globals()) + __all__)

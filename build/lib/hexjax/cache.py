@@ -1,0 +1,67 @@
+"""Compile once per machine: JAX's persistent compilation cache, on by default for the library and the CLI.
+
+A rollout's XLA compile costs 20-50 s on 2 CPU cores and 50-185 s on a GPU; with the cache a later process
+loads the executable instead (docs/benchmarks.md has the figures). Where it lives:
+
+    HEXJAX_CACHE_DIR unset      $XDG_CACHE_HOME/hexjax (default ~/.cache/hexjax)
+    HEXJAX_CACHE_DIR=/some/dir  there
+    HEXJAX_CACHE_DIR=off        no cache (also: 0, false, no)
+
+`enable()` runs when `hexjax` is imported. It sets JAX's options through their environment variables when
+JAX is not imported yet (so nothing of JAX loads for `hexjax --help`), or through `jax.config` when it is;
+options the user set already are left alone. The first time a cache folder is made it says where, once.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+from typing import Optional
+
+ENV = "HEXJAX_CACHE_DIR"
+OFF = ("off", "0", "false", "no", "none")
+# JAX's own options (and their environment variables): where, and which programs are worth keeping
+_OPTIONS = {"jax_persistent_cache_min_compile_time_secs": 0.5, "jax_persistent_cache_min_entry_size_bytes": 0}
+
+
+def cache_dir() -> Optional[Path]:
+    """The cache folder the environment asks for, or None when it is turned off."""
+    v = os.environ.get(ENV, "").strip()
+    if v.lower() in OFF and v:
+        return None
+    if v:
+        return Path(v).expanduser()
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "hexjax"
+
+
+def enable(quiet: bool = False) -> Optional[Path]:
+    """Point JAX's persistent compilation cache at `cache_dir()/jax` (see the module docstring); returns the
+    folder, or None when off or when it cannot be made."""
+    d = cache_dir()
+    if d is None:
+        return None
+    xla = d / "jax"
+    new = not xla.exists()
+    try:
+        xla.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        if not quiet:
+            print(f"hexjax: no compilation cache ({ENV}={d}: {err.strerror})", file=sys.stderr)
+        return None
+    values = dict(_OPTIONS, jax_compilation_cache_dir=str(xla))
+    if "jax" in sys.modules:
+        import jax
+        own = jax.config.jax_compilation_cache_dir
+        if own:
+            return Path(own)  # the user's own cache wins
+        for k, v in values.items():
+            jax.config.update(k, v)
+    else:
+        for k, v in values.items():
+            os.environ.setdefault(k.upper(), str(v))
+    if new and not quiet:
+        print(f"hexjax: compiled programs are cached in {xla} (set {ENV} to move it, {ENV}=off to turn it off)",
+              file=sys.stderr)
+    return xla

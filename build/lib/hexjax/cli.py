@@ -1,0 +1,116 @@
+"""The `hexjax` command, built from the registry (configs/commands/*.yaml, configs/experiments/*.yaml): one
+subcommand per command, `hexjax experiment NAME` per experiment, each with its own flags. No experiment logic
+lives here, and nothing of JAX is imported before the arguments parse (`--help` answers at once)."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import types
+
+from hexjax.experiments.registry import Entry, Option, commands, experiment, experiments
+from hexjax.world.files import is_path, preset_names
+
+
+def _value_parser(opt: Option):
+    """The argparse `type` of an option: one value of its type, or a comma list for a list default (each item
+    one of `choices`, where given)."""
+    one = opt.value_type
+    if not isinstance(opt.default, list) or opt.repeat:
+        return one
+
+    def items(s):
+        vals = [one(x.strip()) for x in s.split(",") if x.strip()]
+        bad = [v for v in vals if opt.choices and v not in opt.choices]
+        if bad:
+            raise argparse.ArgumentTypeError(f"{bad[0]!r} is not one of {', '.join(map(str, opt.choices))}")
+        return vals
+
+    return items
+
+
+def _help(opt: Option) -> str:
+    text = opt.help
+    if opt.preset:
+        text += f" (presets: {', '.join(preset_names(opt.preset))}; or a .yaml path)"
+    if opt.choices:
+        text += f" (one of: {', '.join(map(str, opt.choices))})"
+    d = ",".join(map(str, opt.default)) if isinstance(opt.default, list) else opt.default
+    return f"{text} [default: {d if d not in ('', None) else 'none'}]".strip()
+
+
+def _add_options(p: argparse.ArgumentParser, entry: Entry) -> None:
+    for opt in entry.options:
+        if isinstance(opt.default, bool):
+            p.add_argument(opt.flag, dest=opt.name, action="store_true", default=opt.default, help=opt.help)
+            continue
+        if opt.repeat:
+            p.add_argument(opt.flag, dest=opt.name, action="append", default=[], help=opt.help, metavar="VALUE")
+            continue
+        kw = dict(dest=opt.name, default=opt.default, type=_value_parser(opt), help=_help(opt),
+                  metavar=opt.name.upper())
+        if opt.choices and not isinstance(opt.default, list):
+            kw["choices"] = list(opt.choices)
+        p.add_argument(opt.flag, **kw)
+
+
+def _list_experiments() -> str:
+    rows = [(e.name, e.paper, e.summary) for e in experiments().values()]
+    w = max(len(r[0]) for r in rows)
+    return "\n".join(f"{n:<{w}}  {paper:<15} {s}" for n, paper, s in rows)
+
+
+def build_parser(argv) -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="hexjax", description="Batched MJX hexapods on randomised terrains: the "
+                                "controllers, planners and experiments of Luneckas 2020, Yu 2019, Zhao 2018 and "
+                                "Chen 2019. Compiled programs are cached (HEXJAX_CACHE_DIR; =off to disable).")
+    sub = p.add_subparsers(dest="cmd", required=True, metavar="COMMAND")
+    for name, entry in commands().items():
+        c = sub.add_parser(name, help=entry.summary, description=entry.summary)
+        _add_options(c, entry)
+        c.set_defaults(entry=entry)
+    ex = sub.add_parser("experiment", help="paper experiments (--list shows them)",
+                        description="Paper experiments; `hexjax experiment NAME --help` shows one's flags.")
+    ex.add_argument("--list", action="store_true", help="print every experiment, one line each")
+    names = ex.add_subparsers(dest="experiment", metavar="NAME")
+    registered = experiments()
+    # a YAML file of one's own in place of a name: `hexjax experiment my/variant.yaml ...`
+    i = argv.index("experiment") + 1 if "experiment" in argv else None
+    if i is not None and i < len(argv) and is_path(argv[i]):
+        registered = {**registered, argv[i]: experiment(argv[i])}
+    for name, entry in registered.items():
+        e = names.add_parser(name, help=f"{entry.paper}: {entry.summary}", description=f"{entry.paper}: {entry.summary}")
+        _add_options(e, entry)
+        e.set_defaults(entry=entry)
+    return p
+
+
+def main(argv=None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    try:
+        a = build_parser(argv).parse_args(argv)
+    except ValueError as err:  # a registry file or an experiment path that does not load
+        print(f"hexjax: error: {err}", file=sys.stderr)
+        return 2
+    if a.cmd == "experiment" and a.list:
+        print(_list_experiments())
+        return 0
+    if a.cmd == "experiment" and not a.experiment:
+        print("hexjax experiment: error: name an experiment (hexjax experiment --list)", file=sys.stderr)
+        return 2
+    # XLA logs a "Very slow compile?" alarm (an error line) for long compiles; a user cannot act on it
+    os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")
+    entry: Entry = a.entry
+    opts = types.SimpleNamespace(**{o.name: getattr(a, o.name) for o in entry.options})
+    from hexjax.experiments import runner
+    try:
+        runner.run(entry, opts)
+    except ValueError as err:
+        print(f"hexjax {a.cmd}{' ' + a.experiment if a.cmd == 'experiment' else ''}: error: {err}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

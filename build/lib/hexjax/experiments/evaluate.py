@@ -1,0 +1,88 @@
+"""`hexjax evaluate`: the Luneckas 2020 gait over flat ground and the paper's four obstacle categories.
+
+All categories share one physics configuration and are padded to one box count, so the whole evaluation
+compiles the rollout once."""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Dict, Sequence
+
+import jax
+from tqdm.auto import tqdm
+
+from hexjax.control.gait import GaitController
+from hexjax.experiments.metrics import batch_stats, goal_errors
+from hexjax.sim.config import PhysicsConfig, RolloutConfig
+from hexjax.sim.model import sim_model
+from hexjax.sim.rollout import BACKENDS, rollout
+from hexjax.world.presets import get_robot, get_terrain
+from hexjax.world.terrain import LUNECKAS2020_CATEGORIES, pad_terrain, sample
+
+DEFAULT_CATEGORIES = ("flat",) + LUNECKAS2020_CATEGORIES
+
+
+def evaluate(robot: str = "luneckas2020", gait: str = "tripod", distance: float = 1.0, batch: int = 16,
+             seed: int = 0, categories: Sequence[str] = DEFAULT_CATEGORIES, step_height: float = 0.03,
+             physics: PhysicsConfig = PhysicsConfig(), progress: bool = True, mesh=None,
+             backend: str = "mjx") -> Dict:
+    """Walk `distance` m with the open-loop Luneckas 2020 gait on each category; returns
+    {"config": ..., "categories": {name: batch_stats + env_steps_per_s}}. robot, categories: preset names or
+    YAML paths; backend: the physics engine ('mjx', 'warp', 'c'; see `hexjax.sim.rollout.rollout`)."""
+    if not (isinstance(distance, (int, float)) and 0 < distance <= 20):
+        raise ValueError(f"distance={distance!r}: must be in (0, 20] m")
+    if not isinstance(batch, int) or batch < 1:
+        raise ValueError(f"batch={batch!r}: must be an integer >= 1")
+    if backend not in BACKENDS:
+        raise ValueError(f"backend={backend!r}: use one of {BACKENDS}")
+    spec = get_robot(robot)
+    specs = {name: get_terrain(name, length=distance + 0.3) for name in categories}
+    ctrl = GaitController(spec, gait=gait, step_height=step_height)
+    params = ctrl.default_params()
+    n_cycles, duration = ctrl.duration_for(distance, params)
+    ctrl = dataclasses.replace(ctrl, n_cycles=n_cycles)
+    m = max(s.max_boxes for s in specs.values())
+    if backend != "c":  # build the MJX model up front so no category's timing includes it
+        sim_model(spec, physics, "warp" if backend == "warp" else "jax")
+    key = jax.random.PRNGKey(seed)
+    results = {}
+    bar = tqdm(list(specs.items()), desc=f"evaluate {gait} {distance:g} m", disable=not progress, unit="cat")
+    for i, (name, tspec) in enumerate(bar):
+        bar.set_postfix_str(name)
+        k_t, k_r = jax.random.split(jax.random.fold_in(key, i))
+        terr = pad_terrain(sample(tspec, k_t, batch), m)
+        summ, st = rollout(spec, terr, ctrl, params, duration, k_r, physics=physics, config=RolloutConfig(), mesh=mesh,
+                           backend=backend, stats=True)
+        stats = batch_stats(summ, goal_errors(summ, distance))
+        stats.update(wall_s=st.run_s, compile_s=st.compile_s, env_steps_per_s=st.env_steps_per_s)
+        results[name] = stats
+    return {"config": dict(robot=spec.name, gait=gait, distance_m=distance, batch=batch, seed=seed,
+                           gait_cycles=n_cycles, duration_s=duration, step_height_m=step_height,
+                           step_length_m=float(params.step_length), swing_time_s=float(params.swing_time),
+                           slots_per_leg=physics.slots_per_leg, torso_slots=physics.torso_slots,
+                           backend=jax.default_backend(), devices=len(jax.devices()), physics_backend=backend),
+            "categories": results}
+
+
+def format_table(result: Dict) -> str:
+    head = f"{'category':<11} {'|dx| cm':>8} {'|dy| cm':>8} {'|da| deg':>9} {'fall %':>7} {'succ %':>7} {'NaN':>4} {'env-steps/s':>12}"
+    lines = [head, "-" * len(head)]
+    for name, s in result["categories"].items():
+        lines.append(f"{name:<11} {s['abs_dx_cm']:8.1f} {s['abs_dy_cm']:8.1f} {s['abs_dalpha_deg']:9.1f} "
+                     f"{s['fall_pct']:7.1f} {s['success_pct']:7.1f} {s['nan']:4d} {s['env_steps_per_s']:12.0f}")
+    lines.append("|dx|, |dy|, |da|: mean goal errors in the start frame (Luneckas 2020 Sect. 2.5); succ: upright and "
+                 "within 10 cm of the goal")
+    return "\n".join(lines)
+
+
+# The command (configs/commands/evaluate.yaml) ---------------------------------------------------------------
+def run(o, entry) -> Dict:
+    return evaluate(robot=o.robot, gait=o.gait, distance=o.distance, batch=o.batch, seed=o.seed,
+                    categories=tuple(o.categories), step_height=o.step_height / 100.0, backend=o.backend)
+
+
+def report(res: Dict) -> str:
+    c = res["config"]
+    return (f"\n{c['robot']} {c['gait']} gait, {c['distance_m']:g} m ({c['gait_cycles']} cycles, "
+            f"{c['duration_s']:.1f} s), {c['batch']} envs per category, seed {c['seed']}, no tactile method\n"
+            + format_table(res))

@@ -1,0 +1,96 @@
+"""The walks of the Luneckas 2020 experiments: one compiled, batched rollout per gait over every obstacle
+category with and without the tactile method (and flat calibration terrains), and the readouts shared by
+the experiment matrix and the error predictor's dataset."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from tqdm.auto import tqdm
+
+from hexjax.control.tactile import TactileGaitController, overcome_height
+from hexjax.experiments.metrics import pose_errors
+from hexjax.sim.config import RolloutConfig
+from hexjax.sim.rollout import rollout
+from hexjax.sim.step import progress_to
+from hexjax.world.presets import get_robot, get_terrain
+from hexjax.world.terrain import LUNECKAS2020_CATEGORIES, pad_terrain, sample
+
+GAITS = ("wave", "tripod")
+DISTANCES = (1.0, 2.0)
+METHODS = ("without", "with")
+STUCK_WINDOW = 0.2  # fraction of the commanded path before the readout over which progress is checked
+STUCK_RATIO = 0.25  # stuck: advanced less than this fraction of what was commanded in that window
+
+
+def concat(trees):
+    """Concatenate pytrees (terrains) along their leading axis."""
+    return jax.tree_util.tree_map(lambda *a: jnp.concatenate(a), *trees)
+
+
+def readout_index(ctrl: TactileGaitController, params, d: float, n_steps: int) -> int:
+    """Trace index at which the gait has commanded `d` m of advance (last index if never)."""
+    t = (np.arange(n_steps) + 1) * ctrl.dt
+    adv = np.asarray(ctrl.commanded_advance(jax.tree_util.tree_map(lambda x: x[0], params), jnp.asarray(t)))
+    hit = np.nonzero(adv >= d - 1e-6)[0]
+    return int(hit[0]) if hit.size else n_steps - 1
+
+
+def errors_from(start_pose, pose, d: float):
+    """`metrics.pose_errors` in numpy: (dx, dy, dalpha, advance), (B,) each."""
+    return pose_errors(np.asarray(start_pose), np.asarray(pose), d, xp=np)
+
+
+def robot_width(robot) -> float:
+    """a of Luneckas 2020 Eq. 12: the robot's width between its left and right front/hind feet, m."""
+    return 2 * (robot.hip_y + robot.stance_radial * math.cos(robot.stance_splay))
+
+
+def simulate_gait(gait: str, n: int, seed: int = 0, distance: float = 2.0,
+                  categories: Sequence[str] = LUNECKAS2020_CATEGORIES, methods: Sequence[str] = METHODS,
+                  calibration: bool = True, progress: bool = True, robot_name: str = "luneckas2020"):
+    """One compiled, batched rollout of `gait` over every (category, method) x n terrains (+ n flat).
+
+    Returns (ctrl, params, terrain, summary, groups, RolloutStats) with groups a list of (category, method,
+    slice)."""
+    robot = get_robot(robot_name)
+    specs = {c: get_terrain(c, length=distance + 0.3) for c in categories}
+    m = max([s.max_boxes for s in specs.values()] + [1])
+    ctrl = TactileGaitController(robot, gait=gait)
+    ncyc, dur = ctrl.duration_for(distance)
+    ctrl = dataclasses.replace(ctrl, n_cycles=ncyc)
+    terrs, params, groups = [], [], []
+    base = jax.random.PRNGKey(seed)
+    for i, c in enumerate(categories):
+        # the same terrains for both methods and both gaits: the key depends on the category only
+        t = pad_terrain(sample(specs[c], jax.random.fold_in(base, i), n), m)
+        H = specs[c].height_range[1]
+        for meth in methods:
+            groups.append((c, meth, slice(len(params), len(params) + n)))
+            terrs.append(t)
+            params += [ctrl.default_params(enable=float(meth == "with"), overcome_height=overcome_height(H))] * n
+    if calibration:
+        groups.append(("flat", "without", slice(len(params), len(params) + n)))
+        terrs.append(pad_terrain(sample(get_terrain("flat"), base, n), m))
+        params += [ctrl.default_params(enable=0.0)] * n
+    terrain = concat(terrs)
+    params = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *params)
+    cfg = RolloutConfig(record=True, progress_every=50)
+    n_total = int(round(cfg.settle_time / ctrl.dt)) + int(math.ceil(dur / ctrl.dt - 1e-9))
+    bar = tqdm(total=n_total, desc=f"{gait} x {len(params.enable)} envs, {dur:.0f} s simulated", unit="step",
+               disable=not progress, mininterval=1.0)
+
+    def sink(i):
+        bar.update(i - bar.n)
+
+    with progress_to(sink):
+        s, st = rollout(robot, terrain, ctrl, params, dur, jax.random.fold_in(base, 1000), params_batched=True,
+                        config=cfg, stats=True)
+    bar.update(n_total - bar.n)
+    bar.close()
+    return ctrl, params, terrain, s, groups, st

@@ -1,0 +1,84 @@
+"""Positional errors at the goal (Luneckas 2020 Sect. 2.5) and batch statistics."""
+
+from __future__ import annotations
+
+import math
+from typing import Dict
+
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from hexjax.sim.step import Summary
+
+
+@struct.dataclass
+class GoalErrors:
+    """Per-env errors for a straight walk of planned distance d along the initial heading.
+
+    dx (B,) m    longitudinal error: d minus the advance along the initial heading (> 0: fell short)
+    dy (B,) m    transverse error: displacement across the initial heading (> 0: to the left)
+    dalpha (B,) rad heading change, wrapped to (-pi, pi]
+    advance (B,) m  displacement along the initial heading
+    success (B,) bool  no fall, no NaN, and hypot(dx, dy) <= success_radius
+    """
+
+    dx: jnp.ndarray
+    dy: jnp.ndarray
+    dalpha: jnp.ndarray
+    advance: jnp.ndarray
+    success: jnp.ndarray
+
+
+def pose_errors(start_pose, pose, distance: float, xp=jnp):
+    """(dx, dy, dalpha, advance) of poses (..., 3) (x m, y m, yaw rad) against a straight walk of `distance`
+    m along the start heading, in the start frame (Luneckas 2020 Sect. 2.5, Fig. 15): dx = distance -
+    advance (> 0: short), dy lateral (> 0: left), dalpha wrapped to (-pi, pi]. xp: jax.numpy or numpy."""
+    p0, p1 = start_pose, pose
+    yaw0 = p0[..., 2]
+    disp = p1[..., :2] - p0[..., :2]
+    c, s = xp.cos(yaw0), xp.sin(yaw0)
+    advance = c * disp[..., 0] + s * disp[..., 1]
+    lateral = -s * disp[..., 0] + c * disp[..., 1]
+    dalpha = xp.angle(xp.exp(1j * (p1[..., 2] - yaw0)))
+    return distance - advance, lateral, dalpha, advance
+
+
+def goal_errors(summary: Summary, distance: float, success_radius: float = 0.1) -> GoalErrors:
+    """dx, dy, d-alpha at the goal (Luneckas 2020 Sect. 2.5, Fig. 15), in the robot's start frame."""
+    dx, lateral, dalpha, advance = pose_errors(summary.start_pose, summary.end_pose, distance)
+    ok = ~summary.fell & ~summary.nan & (jnp.hypot(dx, lateral) <= success_radius)
+    return GoalErrors(dx=dx, dy=lateral, dalpha=dalpha, advance=advance, success=ok)
+
+
+def batch_stats(summary: Summary, errors: GoalErrors) -> Dict[str, float]:
+    """Means over the envs that stayed finite (NaN envs are counted, never averaged). Units: cm, deg, %, J."""
+    nan = np.asarray(summary.nan)
+    good = ~nan
+    n_good = max(int(good.sum()), 1)
+
+    def mean(x):
+        x = np.asarray(x)[good]
+        return float(x.mean()) if x.size else math.nan
+
+    def std(x):
+        x = np.asarray(x)[good]
+        return float(x.std()) if x.size else math.nan
+
+    return {
+        "n": int(nan.size),
+        "nan": int(nan.sum()),
+        "abs_dx_cm": 100 * mean(np.abs(errors.dx)),
+        "abs_dy_cm": 100 * mean(np.abs(errors.dy)),
+        "abs_dalpha_deg": math.degrees(mean(np.abs(errors.dalpha))),
+        "dx_cm": 100 * mean(errors.dx),
+        "dx_std_cm": 100 * std(errors.dx),
+        "dy_cm": 100 * mean(errors.dy),
+        "dy_std_cm": 100 * std(errors.dy),
+        "advance_m": mean(errors.advance),
+        "fall_pct": 100 * float(np.asarray(summary.fell)[good].sum()) / n_good,
+        "success_pct": 100 * float(np.asarray(errors.success).mean()),
+        "energy_J": mean(summary.energy),
+        "path_length_m": mean(summary.path_length),
+        "tactile_steps": mean(np.asarray(summary.tactile_steps).sum(-1)),
+    }

@@ -1,0 +1,125 @@
+"""The registry of what `hexjax` runs: paper experiments (configs/experiments/*.yaml) and commands
+(configs/commands/*.yaml), each a YAML file of data. Reading it imports no JAX, so `hexjax --help` and
+`hexjax experiment --list` answer at once.
+
+A file holds:
+    summary: one line for `--list` and `--help`
+    paper:   the paper it reproduces ("Luneckas 2020"), experiments only
+    entry:   the module that runs it; it defines run(opts, entry) -> result dict, report(result) -> str and,
+             where it draws, plot(result, png_path) -> [written paths]
+    options: the command-line flags, each {default, help} and optionally choices, a preset kind (robots,
+             terrains, tune: a preset name or a .yaml path), the suffixes of an output file, or `repeat` (the
+             flag may be given several times); the type is the default's or `type`'s (a list default takes a
+             comma list; a false default is a switch)
+    preset:  the experiment's fixed numbers (terrains, variants, durations): a copy with other numbers is a
+             new experiment, `hexjax experiment path/to/my.yaml`
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Any, Dict, Optional, Tuple
+
+from hexjax.world.files import preset_names, read_yaml, resolve
+
+OPTION_KEYS = {"default", "help", "choices", "preset", "output", "type", "repeat"}
+TYPES = {"int": int, "float": float, "str": str}
+
+
+@dataclasses.dataclass(frozen=True)
+class Option:
+    """One command-line flag: `--name` (dashes for underscores) with its default and help; `preset`: the
+    preset kind its value names; `output`: the file suffixes it may end in (checked before any work)."""
+
+    name: str
+    default: Any
+    help: str = ""
+    choices: Optional[Tuple[Any, ...]] = None
+    preset: Optional[str] = None
+    output: Optional[Tuple[str, ...]] = None
+    type: Optional[str] = None
+    repeat: bool = False
+
+    @property
+    def flag(self) -> str:
+        return "--" + self.name.replace("_", "-")
+
+    @property
+    def value_type(self):
+        """The type of one value (a list option's items): the `type` key, else the default's."""
+        if self.type:
+            return TYPES[self.type]
+        d = self.default[0] if isinstance(self.default, list) and self.default else self.default
+        return type(d) if isinstance(d, (int, float, str)) and not isinstance(d, bool) else str
+
+
+@dataclasses.dataclass(frozen=True)
+class Entry:
+    """A registered experiment or command (see the module docstring)."""
+
+    name: str
+    summary: str
+    entry: str
+    options: Tuple[Option, ...]
+    preset: Dict[str, Any]
+    paper: str = ""
+    path: str = ""
+
+    def option(self, name: str) -> Option:
+        return next(o for o in self.options if o.name == name)
+
+
+def _option(source: str, name: str, spec) -> Option:
+    if not isinstance(spec, dict):
+        spec = {"default": spec}
+    unknown = set(spec) - OPTION_KEYS
+    if unknown:
+        raise ValueError(f"{source}: options.{name}: unknown keys {sorted(unknown)}; known: {sorted(OPTION_KEYS)}")
+    if "default" not in spec:
+        raise ValueError(f"{source}: options.{name}: needs a default")
+    if spec.get("type") not in (None, *TYPES):
+        raise ValueError(f"{source}: options.{name}.type={spec['type']!r}: use one of {sorted(TYPES)}")
+    pk = spec.get("preset")
+    if pk is not None and pk not in ("robots", "terrains", "tune"):
+        raise ValueError(f"{source}: options.{name}.preset={pk!r}: use robots, terrains or tune")
+    out = spec.get("output")
+    return Option(name=name, default=spec["default"], help=str(spec.get("help", "")),
+                  choices=tuple(spec["choices"]) if spec.get("choices") is not None else None, preset=pk,
+                  output=tuple(out) if out else None, type=spec.get("type"), repeat=bool(spec.get("repeat", False)))
+
+
+def load_entry(path: Path, kind: str) -> Entry:
+    """The entry of one registry file; `kind` is 'experiments' or 'commands' (commands carry no paper)."""
+    raw = read_yaml(path)
+    source = str(path)
+    known = {"summary", "paper", "entry", "options", "preset"}
+    unknown = set(raw) - known
+    if unknown:
+        raise ValueError(f"{source}: unknown keys {sorted(unknown)}; known: {sorted(known)}")
+    for k in ("summary", "entry"):
+        if not isinstance(raw.get(k), str) or not raw[k]:
+            raise ValueError(f"{source}: {k}: a non-empty string is required")
+    if kind == "experiments" and not raw.get("paper"):
+        raise ValueError(f"{source}: paper: name the paper the experiment reproduces (e.g. 'Yu 2019')")
+    opts = raw.get("options") or {}
+    preset = raw.get("preset") or {}
+    if not isinstance(opts, dict) or not isinstance(preset, dict):
+        raise ValueError(f"{source}: options and preset must be mappings")
+    return Entry(name=path.stem, summary=raw["summary"], entry=raw["entry"], paper=str(raw.get("paper", "")),
+                 options=tuple(_option(source, k, v) for k, v in opts.items()), preset=preset, path=source)
+
+
+def experiments() -> Dict[str, Entry]:
+    """Every registered paper experiment, by name (configs/experiments/*.yaml)."""
+    return {n: load_entry(resolve("experiments", n), "experiments") for n in preset_names("experiments")}
+
+
+def experiment(name: str) -> Entry:
+    """One experiment: a registered name or a path to a YAML file of the same form."""
+    return load_entry(resolve("experiments", name), "experiments")
+
+
+def commands() -> Dict[str, Entry]:
+    """The commands besides `experiment` (configs/commands/*.yaml), by name."""
+    return {n: load_entry(resolve("commands", n), "commands") for n in preset_names("commands")}

@@ -1,0 +1,58 @@
+"""Run one registry entry (`hexjax.experiments.registry`) from parsed options: check what can be checked before
+any work (output paths, preset names), run it, print its report, write its JSON and plots."""
+
+from __future__ import annotations
+
+import importlib
+import json
+import os
+import types
+from typing import Any, Dict, List
+
+from hexjax.experiments.registry import Entry
+from hexjax.world.files import resolve
+
+
+def check_options(entry: Entry, o: types.SimpleNamespace) -> None:
+    """Raise one ValueError line for an output path with the wrong suffix or in a folder that cannot be made,
+    or a preset name that does not resolve, before anything runs."""
+    for opt in entry.options:
+        v = getattr(o, opt.name)
+        if opt.output and v:
+            if not str(v).lower().endswith(opt.output):
+                raise ValueError(f"{opt.flag}={v!r}: the file must end in {' or '.join(opt.output)}")
+            folder = os.path.dirname(os.path.abspath(v))
+            try:
+                os.makedirs(folder, exist_ok=True)
+            except OSError as err:
+                raise ValueError(f"{opt.flag}={v!r}: cannot make its folder ({err.strerror})") from None
+            if not os.access(folder, os.W_OK):
+                raise ValueError(f"{opt.flag}={v!r}: its folder {folder} is not writable")
+        if opt.preset and v:
+            for name in (v if isinstance(v, list) else [v]):
+                resolve(opt.preset, name)
+
+
+def write_json(path: str, obj) -> None:
+    """`obj` without its `_`-keys (arrays kept for plots) as indented JSON; numpy numbers as floats."""
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    with open(path, "w") as f:
+        json.dump({k: v for k, v in obj.items() if not str(k).startswith("_")}, f, indent=2, default=float)
+
+
+def run(entry: Entry, o: types.SimpleNamespace) -> Dict[str, Any]:
+    """Check, run, report; write `o.json` and plot to `o.png` where the entry has those options. Returns the
+    result and prints what was written."""
+    check_options(entry, o)
+    mod = importlib.import_module(entry.entry)
+    res = mod.run(o, entry)
+    print(mod.report(res))
+    written: List[str] = []
+    if getattr(o, "png", "") and hasattr(mod, "plot"):
+        written += list(mod.plot(res, o.png) or [o.png])
+    if getattr(o, "json", ""):
+        write_json(o.json, res)
+        written.append(o.json)
+    for w in written:
+        print(f"wrote {w}")
+    return res

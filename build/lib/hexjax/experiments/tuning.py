@@ -1,0 +1,82 @@
+"""`hexjax tune`: tune a controller's params from the papers' hand rules by windowed gradients through MJX,
+by CMA-ES on the same objective, or both (CMA-ES then gets the gradient run's rollouts, and with
+`--equal-wall` also its wall time), with a comparison JSON and plot (docs/tuning.md)."""
+
+from __future__ import annotations
+
+import os
+import time
+from typing import Dict, List
+
+from hexjax.tune.config import load_tune_config
+from hexjax.tune.driver import compare_plot
+from hexjax.tune.es import tune_es
+from hexjax.tune.grad import tune
+from hexjax.world.files import resolve
+
+
+def parse_sets(items) -> Dict:
+    """['steps=5', 'optimizer.learning_rate=0.2'] -> nested overrides, values parsed as YAML."""
+    import yaml
+    out: Dict = {}
+    for it in items or []:
+        key, eq, val = it.partition("=")
+        if not eq or not key:
+            raise ValueError(f"--set {it!r}: use key=value (e.g. --set steps=5)")
+        head, _, rest = key.partition(".")
+        v = yaml.safe_load(val)
+        if rest:
+            out.setdefault(head, {})[rest] = v
+        else:
+            out[head] = v
+    return out
+
+
+def _row(r) -> Dict:
+    last = r["log"][-1]
+    return {"method": r["method"], "rollouts": last["rollouts"], "wall_s": last["wall_s"],
+            "held_out_start": r["start"]["held_out"], "held_out_final": r["final"]["held_out"],
+            "selected_step": r["final"]["step"], "selected_by": r["selected_by"], "held_out_last": r["last"]["held_out"],
+            "improvement_pct": r["improvement_pct"], "params_start": r["start"]["params"],
+            "params_final": r["final"]["params"],
+            "curve": [(e["rollouts"], e["held_out"]["objective"]) for e in r["log"] if "held_out" in e]}
+
+
+def run(o, entry) -> Dict:
+    cfg = load_tune_config(o.config, parse_sets(o.set), merge=True)
+    out = o.out or os.path.join("out", "tune", resolve("tune", o.config).stem)
+    limit = None if o.minutes is None else 60 * o.minutes
+    print(f"tune {o.config} ({o.method}): {cfg.steps} steps of {cfg.train_batch} rollouts ({cfg.distance:g} m "
+          f"walks on {cfg.terrain}), held-out evaluation on {cfg.held_out_batch} terrains every {cfg.eval_every} "
+          f"steps{'' if limit is None else f', at most {o.minutes:g} min a method'}; a long run (the shipped configs "
+          f"take about 15 min a method on 2 CPU cores); checkpoints in {out}/, rerun to resume", flush=True)
+    t0 = time.perf_counter()
+    runs: List[Dict] = []
+    if o.method in ("grad", "both"):
+        runs.append(tune(cfg, os.path.join(out, "grad"), resume=not o.restart, time_limit=limit))
+    if o.method in ("es", "both"):
+        budget = o.rollouts or (runs[0]["log"][-1]["rollouts"] if runs else cfg.steps * cfg.train_batch)
+        runs.append(tune_es(cfg, os.path.join(out, "es"), rollouts=budget, resume=not o.restart, time_limit=limit))
+    if o.equal_wall and runs and runs[0]["method"] == "grad":
+        wall = runs[0]["log"][-1]["wall_s"]
+        runs.append(tune_es(cfg, os.path.join(out, "es_wall"), rollouts=10 ** 9, resume=not o.restart, time_limit=wall))
+        runs[-1]["method"] += ", same wall time"
+    res = {"config": o.config, "out": out, "total_wall_s": time.perf_counter() - t0, "runs": [_row(r) for r in runs]}
+    if len(runs) > 1:
+        compare_plot(res["runs"], os.path.join(out, "compare.png"))
+    return res
+
+
+def report(res: Dict) -> str:
+    lines = []
+    for r in res["runs"]:
+        s, f = r["held_out_start"], r["held_out_final"]
+        pct = r["improvement_pct"]
+        verdict = "better" if pct > 0 else ("worse" if pct < 0 else "unchanged")
+        lines.append(f"{r['method']}: held-out objective {s['objective']:.4f} -> {f['objective']:.4f} m ({-pct:+.1f} %, "
+                     f"{verdict}), goal error {s['goal_error_cm']:.1f} -> {f['goal_error_cm']:.1f} cm (iterate "
+                     f"{r['selected_step']}, {r['selected_by']}), {r['rollouts']} rollouts, {r['wall_s']:.0f} s")
+        for k, v in r["params_final"].items():
+            lines.append(f"  {k}: {r['params_start'][k]} -> {v}")
+    lines.append(f"logs, checkpoints and plots under {res['out']}/")
+    return "\n".join(lines)

@@ -1,0 +1,239 @@
+"""Yu 2019 Sect. 6.1 experiments as batched presets: the step obstacle (elevator reflex, `yu2019-step`) and
+the ditches (searching reflex, `yu2019-ditch`), each run with and without the reflex on randomised
+placements. The presets (terrains, variants, durations) are configs/experiments/yu2019-*.yaml.
+
+`run_experiment(name)` returns a JSON-ready dict; `plot_experiment` draws foot paths in the sagittal
+plane (cf. the paper's Figs. 8, 14, 15) and the CPG outputs of one leg (cf. Figs. 3, 7, 10).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Dict, Mapping, Optional
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from tqdm.auto import tqdm
+
+from hexjax.control.cpg import MODE_NAMES, TRIPOD_GROUP, CPGController
+from hexjax.experiments.registry import experiment
+from hexjax.sim.config import RolloutConfig, physics_for
+from hexjax.sim.rollout import rollout
+from hexjax.world.presets import get_robot, get_terrain
+from hexjax.world.robot import LEG_NAMES, leg_fk
+from hexjax.world.terrain import sample
+
+
+def _obstacle_end(terrain, kind: str) -> np.ndarray:
+    """(B,) x (m) the hind hips must pass: the step's face, or the far side of the (first) ditch."""
+    pos, half = np.asarray(terrain.box_pos), np.asarray(terrain.box_half)
+    if kind == "step":
+        return pos[:, 0, 0] - half[:, 0, 0]
+    return pos[:, 1, 0] - half[:, 1, 0]  # the slab after the ditch starts where the ditch ends
+
+
+def _climb_time(s, terrain, robot, dt: float) -> np.ndarray:
+    """(B, 6) s: first time each foot stood on top of the step (inside its footprint, at its height);
+    inf if never."""
+    feet = np.asarray(s.foot_trace)  # (B, T, 6, 3)
+    pos, half = np.asarray(terrain.box_pos)[:, None, None, 0], np.asarray(terrain.box_half)[:, None, None, 0]
+    inside = np.all(np.abs(feet[..., :2] - pos[..., :2]) < half[..., :2], axis=-1)
+    up = inside & (feet[..., 2] > pos[..., 2] + half[..., 2] + robot.foot_radius - 0.005)
+    return np.where(up.any(1), up.argmax(1) * dt, np.inf)
+
+
+def _obstacle_start(terrain, kind: str) -> np.ndarray:
+    """(B,) x (m) where the feature begins: the step's face, or the near edge of the (first) ditch."""
+    pos, half = np.asarray(terrain.box_pos), np.asarray(terrain.box_half)
+    return pos[:, 0, 0] + (-1 if kind == "step" else 1) * half[:, 0, 0]
+
+
+def _summarise(ctrl: CPGController, robot, s, terrain, kind: str, stumble_tilt: float) -> Dict:
+    fs = jax.tree_util.tree_map(np.asarray, s.final_state)
+    end_x = np.asarray(s.end_pose[:, 0])
+    far = _obstacle_end(terrain, kind)
+    # the front feet got as far as the feature (their farthest reach ahead of the torso centre)
+    reached = end_x + robot.hip_x + robot.stance_radial >= _obstacle_start(terrain, kind)
+    # crossed: the hind hips are past the ditch, or past the step's face with every right foot having
+    # stood on top of the step (a robot that veered along the face does not count)
+    crossed = end_x - robot.hip_x > far
+    climb = None
+    if kind == "step":
+        if s.foot_trace is None:
+            raise ValueError("the step experiment needs foot traces: run with record=True")
+        # all three right feet up: the time the last of them first stood on the step
+        climb = _climb_time(s, terrain, robot, ctrl.dt)[:, [LEG_NAMES.index(n) for n in ("RF", "RM", "RH")]].max(-1)
+        crossed = crossed & np.isfinite(climb)
+    fell = np.asarray(s.fell)
+    modes = np.asarray(ctrl.mode(s.final_state))
+    n_found = fs.n_found.sum(-1)
+    failed = fs.failed > 0.5
+    # for a leg that gave up: distance of the measured foot from its AEP posture (q_ref)
+    err = np.linalg.norm(np.asarray(leg_fk(robot, jnp.asarray(fs.q_meas)) - leg_fk(robot, jnp.asarray(fs.q_ref))), axis=-1)
+    aep_err = np.where(failed, err, np.nan)
+    # the FSM at a give-up: the failed leg's alien group in stance-prolong, its own group in swing-prolong
+    alien_prolong = []
+    for b in np.nonzero(failed.any(-1))[0]:
+        leg = int(np.nonzero(failed[b])[0][0])
+        alien = TRIPOD_GROUP != TRIPOD_GROUP[leg]
+        alien_prolong.append(bool(np.all(modes[b][alien] == MODE_NAMES.index("stance-prolong"))))
+    depth = fs.depth.max(-1)
+    yaw = np.degrees(np.asarray(s.end_pose[:, 2] - s.start_pose[:, 2]))
+    out = {
+        "envs": int(end_x.shape[0]),
+        "success_rate": float(np.mean(crossed & ~fell)),
+        "fall_rate": float(np.mean(fell)),
+        "stumble_rate": float(np.mean(np.asarray(s.max_tilt) > stumble_tilt)),
+        "nan_envs": int(np.sum(np.asarray(s.nan))),
+        "advance_m_mean": float(np.mean(end_x - np.asarray(s.start_pose[:, 0]))),
+        "elevator_triggers_mean": float(fs.n_elev.sum(-1).mean()),
+        "search_triggers_mean": float(fs.n_search.sum(-1).mean()),
+        "footholds_found_mean": float(n_found.mean()),
+        "envs_with_found_foothold": float(np.mean(n_found > 0)),
+        "search_depth_mm_max": float(1000 * depth.max()) if depth.size else 0.0,
+        "search_depth_mm_mean_of_found": float(1000 * depth[n_found > 0].mean()) if np.any(n_found > 0) else None,
+        "out_of_range_envs": float(np.mean(failed.any(-1))),
+        "failed_leg_aep_error_mm_max": float(1000 * np.nanmax(aep_err)) if np.any(failed) else None,
+        "failed_with_alien_group_in_stance_prolong": float(np.mean(alien_prolong)) if alien_prolong else None,
+        "stance_prolong_steps_during_search_mean": float(fs.wait_steps.sum(-1).mean()),
+        "per_env": {"advance_m": (end_x - np.asarray(s.start_pose[:, 0])).round(4).tolist(),
+                    "crossed": crossed.tolist(), "fell": fell.tolist(),
+                    "max_tilt_deg": np.degrees(np.asarray(s.max_tilt)).round(1).tolist(),
+                    "elevator_triggers": fs.n_elev.sum(-1).tolist(), "search_triggers": fs.n_search.sum(-1).tolist(),
+                    "search_depth_mm": (1000 * depth).round(1).tolist(), "gave_up": failed.any(-1).tolist(),
+                    "heading_change_deg": yaw.round(1).tolist()},
+        "heading_change_deg_mean_abs": float(np.mean(np.abs(yaw))),
+        "reached_feature_rate": float(np.mean(reached)),
+    }
+    if climb is not None:
+        up = np.isfinite(climb)
+        out["right_feet_up_rate"] = float(np.mean(up))
+        out["right_feet_up_s_median"] = float(np.median(climb[up])) if up.any() else None
+        out["per_env"]["right_feet_up_s"] = [round(float(c), 2) if np.isfinite(c) else None for c in climb]
+    return out
+
+
+def run_experiment(name: str, batch: int = 32, seed: int = 0, duration: Optional[float] = None,
+                   record: bool = True, progress: bool = True, preset: Optional[Mapping] = None) -> Dict:
+    """Runs every (terrain, variant) of experiment `name` (its preset: configs/experiments/<name>.yaml, or
+    `preset`) on `batch` randomised terrains (the same terrains for every variant). Returns {"config",
+    "results": {terrain: {variant: metrics}}, "_records"}; `_records` holds numpy traces of one env per row
+    for plotting and is not JSON."""
+    ex = dict(preset if preset is not None else experiment(name).preset)
+    if not isinstance(batch, int) or batch < 1:
+        raise ValueError(f"batch={batch!r}: must be an integer >= 1")
+    dur = float(duration if duration is not None else ex["duration"])
+    if not (math.isfinite(dur) and dur > 0):
+        raise ValueError(f"duration={duration!r}: must be a finite number of seconds > 0")
+    robot = get_robot(ex["robot"])
+    variants = list(ex["variants"].items())
+    stumble_tilt = math.radians(ex["stumble_tilt_deg"])
+    out = {"config": {"experiment": name, "robot": robot.name, "batch": batch, "seed": seed, "duration_s": dur,
+                      "terrains": list(ex["terrains"]), "variants": [v for v, _ in variants],
+                      "stumble_tilt_deg": math.degrees(stumble_tilt)},
+           "results": {}, "_records": {}}
+    jobs = [(t, v, o or {}) for t in ex["terrains"] for v, o in variants]
+    bar = tqdm(jobs, desc=name, disable=not progress)
+    for terrain_name, label, overrides in bar:
+        bar.set_postfix_str(f"{terrain_name} / {label}")
+        spec = get_terrain(terrain_name, **ex.get("terrain_overrides", {}))
+        terrain = sample(spec, jax.random.PRNGKey(seed), batch)
+        ctrl = CPGController(robot, **overrides)
+        params = ctrl.default_params()
+        t0 = time.perf_counter()
+        s, st = rollout(robot, terrain, ctrl, params, dur, jax.random.PRNGKey(seed + 1), physics=physics_for(spec.kind),
+                        config=RolloutConfig(record=record or spec.kind == "step"),  # the step's success needs foot traces
+                        stats=True)
+        m = _summarise(ctrl, robot, s, terrain, spec.kind, stumble_tilt)
+        m["wall_s"] = round(time.perf_counter() - t0, 1)
+        m["compile_s"] = round(st.compile_s, 1)
+        out["results"].setdefault(terrain_name, {})[label] = m
+        if record:
+            env = int(np.argmax(np.asarray(s.final_state.n_elev.sum(-1) + s.final_state.n_search.sum(-1))))
+            out["_records"][(terrain_name, label)] = dict(
+                env=env, dt=ctrl.dt, feet=np.asarray(s.foot_trace[env]), x=np.asarray(s.ctrl_trace["x"][env]),
+                mode=np.asarray(s.ctrl_trace["mode"][env]), box_pos=np.asarray(terrain.box_pos[env]),
+                box_half=np.asarray(terrain.box_half[env]), ground_z=float(terrain.ground_z[env]), kind=spec.kind)
+    return out
+
+
+def format_experiment(res: Dict) -> str:
+    rows = [f"{'terrain':9s} {'variant':12s} {'success':>8s} {'falls':>6s} {'stumble':>8s} {'advance':>8s} "
+            f"{'elev':>6s} {'search':>7s} {'found':>6s} {'depth':>7s} {'gave up':>8s} {'|yaw|':>6s} {'up at':>6s}"]
+    for t, vs in res["results"].items():
+        for v, m in vs.items():
+            rows.append(f"{t:9s} {v:12s} {100 * m['success_rate']:7.0f}% {100 * m['fall_rate']:5.0f}% "
+                        f"{100 * m['stumble_rate']:7.0f}% {m['advance_m_mean']:7.2f}m {m['elevator_triggers_mean']:6.1f} "
+                        f"{m['search_triggers_mean']:7.1f} {m['footholds_found_mean']:6.1f} "
+                        f"{m['search_depth_mm_max']:5.1f}mm {100 * m['out_of_range_envs']:7.0f}% "
+                        f"{m['heading_change_deg_mean_abs']:5.0f}d "
+                        + (f"{m['right_feet_up_s_median']:5.0f}s" if m.get("right_feet_up_s_median") is not None else "     -"))
+    return "\n".join(rows)
+
+
+def plot_experiment(res: Dict, path: str) -> None:
+    """One row per (terrain, variant): foot paths of the right legs in the sagittal plane (world x-z) with
+    the obstacle, and the three neuron outputs of the leg with the most reflex activity, modes shaded."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    recs = res["_records"]
+    if not recs:
+        raise ValueError("no records to plot: run with record=True")
+    fig, axes = plt.subplots(len(recs), 2, figsize=(14, 3.2 * len(recs)), squeeze=False)
+    colours = {"swing": "#cfe8ff", "stance-prolong": "#ffe0b3", "swing-prolong": "#ffd1dc", "search": "#d9f2d0",
+               "search-failed": "#dddddd"}
+    for row, ((terrain, label), r) in enumerate(recs.items()):
+        ax = axes[row, 0]
+        for i, leg in enumerate(LEG_NAMES):
+            if leg.startswith("R") or r["kind"] == "ditch":
+                ax.plot(r["feet"][:, i, 0], 1000 * r["feet"][:, i, 2], lw=0.8, label=leg)
+        for pos, half in zip(r["box_pos"], r["box_half"]):
+            ax.add_patch(plt.Rectangle((pos[0] - half[0], 1000 * (pos[2] - half[2])), 2 * half[0], 2000 * half[2],
+                                       color="0.6", alpha=0.4, lw=0))
+        ax.axhline(1000 * r["ground_z"], color="0.4", lw=0.8)
+        ax.set_xlabel("x (m)"); ax.set_ylabel("foot centre z (mm)")
+        ax.set_title(f"{terrain} / {label}: foot paths (env {r['env']})")
+        ax.legend(fontsize=7, ncol=3)
+        ax = axes[row, 1]
+        mode = r["mode"]
+        activity = ((mode == 4) | (mode == 5)).sum(0) + (np.diff(r["x"][:, :, 0], axis=0) < -0.05).sum(0)
+        leg = int(np.argmax(activity))
+        t = np.arange(len(mode)) * r["dt"]
+        for k, name in enumerate(MODE_NAMES):
+            if name in colours:
+                on = mode[:, leg] == k
+                ax.fill_between(t, -1.6, 1.6, where=on, color=colours[name], step="mid", lw=0, label=name)
+        for j, lab in enumerate(("x1 (alpha)", "x2 (beta)", "x3 (gamma)")):
+            ax.plot(t, r["x"][:, leg, j], lw=0.9, label=lab)
+        ax.set_ylim(-1.6, 1.6); ax.set_xlabel("t (s)"); ax.set_ylabel("neuron output")
+        ax.set_title(f"CPG outputs, leg {LEG_NAMES[leg]}")
+        ax.legend(fontsize=7, ncol=4, loc="lower left")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+# The experiments (configs/experiments/yu2019-step.yaml, yu2019-ditch.yaml) --------------------------------
+def run(o, entry) -> Dict:
+    return run_experiment(entry.name, batch=o.batch, seed=o.seed, duration=o.duration, record=bool(o.png),
+                          preset=entry.preset)
+
+
+def report(res: Dict) -> str:
+    c = res["config"]
+    lines = [f"\n{c['experiment']}: robot {c['robot']}, {c['batch']} randomised terrains per row, "
+             f"{c['duration_s']:g} s, seed {c['seed']}", format_experiment(res)]
+    for t, vs in res["results"].items():
+        if all(m["reached_feature_rate"] == 0 for m in vs.values()):
+            lines.append(f"warning: on {t} no robot reached the obstacle in {c['duration_s']:g} s, so the rates above "
+                         f"say nothing of the reflex; run longer (--duration)")
+    return "\n".join(lines)
+
+
+def plot(res: Dict, png: str):
+    plot_experiment(res, png)
+    return [png]

@@ -1,0 +1,93 @@
+"""Static settings of the simulator: physics (MuJoCo solver and terrain slots), sensors, and the rollout.
+
+All three are frozen dataclasses: hashable, so they key compiled programs, and changing one recompiles.
+Each checks itself (`validate`) on the host before anything is traced.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Optional
+
+
+@dataclasses.dataclass(frozen=True)
+class PhysicsConfig:
+    """Solver settings (Playground-like: one Newton iteration, few line-search steps)."""
+
+    timestep: float = 0.005  # s
+    iterations: int = 2  # 1 lets six stance feet chatter (measured: torso hops, 1.5 of 6 feet in contact)
+    ls_iterations: int = 4
+    integrator: str = "implicitfast"
+    cone: str = "pyramidal"
+    slots_per_leg: int = 2
+    torso_slots: int = 2
+
+    def validate(self) -> None:
+        if not (0 < self.timestep <= 0.02):
+            raise ValueError(f"physics.timestep={self.timestep!r}: must be in (0, 0.02] s")
+        if self.iterations < 1 or self.ls_iterations < 1:
+            raise ValueError(f"physics.iterations={self.iterations!r}, ls_iterations={self.ls_iterations!r}: must be >= 1")
+        if self.integrator not in ("euler", "implicitfast"):
+            raise ValueError(f"physics.integrator={self.integrator!r}: use 'euler' or 'implicitfast'")
+        if self.slots_per_leg < 0 or self.torso_slots < 0:
+            raise ValueError(f"physics.slots_per_leg={self.slots_per_leg!r}, torso_slots={self.torso_slots!r}: must be >= 0")
+
+
+def physics_for(kind: str, base: "PhysicsConfig | None" = None) -> "PhysicsConfig":
+    """The physics settings a terrain kind needs: flat ground has no boxes, so no slots (7 pairs)."""
+    base = base or PhysicsConfig()
+    if kind == "flat":
+        return dataclasses.replace(base, slots_per_leg=0, torso_slots=0)
+    return base
+
+
+@dataclasses.dataclass(frozen=True)
+class SensorConfig:
+    contact_threshold: float = 0.5  # N
+    tactile_threshold: float = 0.3  # N
+
+
+@dataclasses.dataclass(frozen=True)
+class RolloutConfig:
+    """Static rollout settings (changing one recompiles)."""
+
+    settle_time: float = 0.3  # s of standing before the controller starts; start pose is taken after it
+    yaw_noise: float = math.radians(3.0)  # initial heading drawn from U(-yaw_noise, yaw_noise), rad
+    fall_tilt: float = math.radians(60.0)  # torso tilt beyond this counts as a fall, rad
+    fall_height: float = 0.03  # torso centre closer than this to the ground plane counts as a fall, m
+    record: bool = False  # keep a per-control-step torso trace (B, T, 4): x, y, z, yaw
+    # Reverse mode only: bound the norm of the gradient flowing back through the physics and controller
+    # state at every control step (None: exact gradients). Gradients through stiff contacts grow ~100x per 0.1 s and
+    # overflow within a second; a per-step bound keeps them finite and their direction local.
+    grad_clip: Optional[float] = None
+    # Reverse mode only: truncated gradients. Every `grad_window` control steps the physics and controller
+    # state are cut from the gradient (stop_gradient), so the gradient of `Summary.travel` is the sum of the
+    # per-window gradients with each window's start state held fixed (truncated backpropagation through
+    # time; 0: no cut). Its value is unchanged.
+    grad_window: int = 0
+    # Recompute each control step in the backward pass instead of storing its internals (jax.checkpoint):
+    # memory per env and step drops from every substep's solver residuals to one mjx.Data.
+    remat: bool = False
+    # Trace MJX's Newton iterations as a fixed-length scan (`hexjax.sim.model.reversible_solver`) so reverse
+    # mode works with physics.iterations > 1. Without it, gradients need iterations=1, and one unconverged
+    # Newton step makes the rollout non-smooth in the params (central differences flip sign with the step
+    # size; tests/test_tune.py).
+    reversible_solver: bool = False
+    # Every this many control steps the compiled rollout reports its step index to the host (see
+    # `progress_to`); 0: never. A host callback costs ~0.1 ms, so a few hundred calls are free.
+    progress_every: int = 0
+
+    def validate(self) -> None:
+        if not (isinstance(self.grad_window, int) and self.grad_window >= 0):
+            raise ValueError(f"rollout.grad_window={self.grad_window!r}: must be an integer >= 0")
+        if not (isinstance(self.progress_every, int) and self.progress_every >= 0):
+            raise ValueError(f"rollout.progress_every={self.progress_every!r}: must be an integer >= 0")
+        if self.settle_time < 0:
+            raise ValueError(f"rollout.settle_time={self.settle_time!r}: must be >= 0")
+        if not 0 <= self.yaw_noise < math.pi:
+            raise ValueError(f"rollout.yaw_noise={self.yaw_noise!r}: must be in [0, pi)")
+        if not 0 < self.fall_tilt <= math.pi:
+            raise ValueError(f"rollout.fall_tilt={self.fall_tilt!r}: must be in (0, pi]")
+        if self.grad_clip is not None and not (math.isfinite(self.grad_clip) and self.grad_clip > 0):
+            raise ValueError(f"rollout.grad_clip={self.grad_clip!r}: must be None or a finite number > 0")

@@ -1,0 +1,190 @@
+"""The batched rollout: `lax.scan` of the control step (`hexjax.sim.step`) over time, `vmap` over envs, `jit`,
+optionally sharded over a device mesh along the batch axis; or the same control step with the physics of
+MuJoCo Warp or MuJoCo C (`backend=`)."""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+import time
+from typing import Optional
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh, NamedSharding
+from jax.sharding import PartitionSpec as P
+
+from hexjax.control.base import Controller
+from hexjax.sim.backends.mujoco_c import rollout_c
+from hexjax.sim.compiled import Compiled
+from hexjax.sim.config import PhysicsConfig, RolloutConfig, SensorConfig
+from hexjax.sim.model import mjx, reversible_solver, sim_model
+from hexjax.sim.step import Summary, control_steps, end_pose, init_acc, make_control_step, settle_steps, substeps
+from hexjax.world.robot import RobotSpec
+from hexjax.world.terrain import Terrain
+
+BACKENDS = ("mjx", "warp", "c")
+
+
+@dataclasses.dataclass(frozen=True)
+class RolloutStats:
+    """How a `rollout(..., stats=True)` call went. compile_s: seconds spent tracing and compiling (or loading
+    a cached executable; 0 when this process had compiled it already); wall_s: the whole call, compile
+    included, outputs ready; env_steps: envs x physics steps (settling included); env_steps_per_s: env_steps
+    over the call less its compile."""
+
+    compile_s: float
+    wall_s: float
+    env_steps: int
+    backend: str
+
+    @property
+    def run_s(self) -> float:
+        return max(self.wall_s - self.compile_s, 1e-9)
+
+    @property
+    def env_steps_per_s(self) -> float:
+        return self.env_steps / self.run_s
+
+
+@functools.lru_cache(maxsize=32)
+def _compiled(robot: RobotSpec, physics: PhysicsConfig, sensors: SensorConfig, controller: Controller,
+              cfg: RolloutConfig, n_ctrl: int, params_batched: bool, impl: str = "jax"):
+    """(SimModel, Compiled batched rollout) for one static setting; cached, as its compile is the cost."""
+    sm = sim_model(robot, physics, impl)
+    n_settle = settle_steps(cfg, controller.dt)
+    ctrl0_default = jnp.asarray(sm.ctrl0)
+    control_step = make_control_step(sm, sensors, cfg, controller, n_settle)
+
+    def single(m_shared, params, terrain: Terrain, key, d_template):
+        k_yaw, k_ctrl = jax.random.split(key)
+        yaw0 = jax.random.uniform(k_yaw, (), minval=-cfg.yaw_noise, maxval=cfg.yaw_noise)
+        d0 = sm.init_data(jnp.stack([0.0, 0.0, yaw0]), d_template)
+        cstate0 = controller.init(params, k_ctrl)
+        # a controller may ask to settle in its own first posture (the CPG starts mid-stride)
+        ctrl0 = controller.initial_action(params)
+        ctrl0 = ctrl0_default if ctrl0 is None else ctrl0
+        d0 = d0.replace(qpos=d0.qpos.at[7:].set(ctrl0), ctrl=ctrl0)
+        acc0 = init_acc(jnp.stack([d0.qpos[0], d0.qpos[1], yaw0]))
+        # forward once so site positions exist before the first slot assignment
+        d0 = mjx.forward(m_shared, d0)
+
+        def body(carry, i):
+            return control_step(carry, i, params, terrain, m_shared, ctrl0)
+
+        body = jax.checkpoint(body, prevent_cse=False) if cfg.remat else body
+        (d, cstate, acc), rec = jax.lax.scan(body, (d0, cstate0, acc0), jnp.arange(n_settle + n_ctrl))
+        extra = {}
+        if cfg.record:
+            rec = jax.tree_util.tree_map(lambda a: a[n_settle:], rec)
+            extra = dict(trace=rec["pose"], foot_trace=rec["feet"], ctrl_trace=rec["ctrl"], qpos_trace=rec["qpos"],
+                         force_trace=rec["force"], tactile_trace=rec["tactile"])
+        return Summary(end_pose=end_pose(d.qpos), final_state=cstate, **extra, **acc)
+
+    def batched(m_shared, params, terrain, keys, d_template=None):
+        run = jax.vmap(single, in_axes=(None, 0 if params_batched else None, 0, 0, None))
+        if cfg.reversible_solver:
+            with reversible_solver(physics.iterations):
+                return run(m_shared, params, terrain, keys, d_template)
+        return run(m_shared, params, terrain, keys, d_template)
+
+    return sm, Compiled(jax.jit(batched))
+
+
+def _check_static(robot: RobotSpec, controller, duration, physics: PhysicsConfig, config: RolloutConfig) -> int:
+    """Host-side checks of what a compiled rollout is specialised on; returns the control steps."""
+    robot.validate(); physics.validate(); config.validate()
+    if not isinstance(controller, Controller):
+        raise ValueError(f"controller={type(controller).__name__}: derive it from hexjax.control.Controller "
+                         "(the protocol the rollout calls)")
+    if not (isinstance(duration, (int, float)) and math.isfinite(duration) and duration > 0):
+        raise ValueError(f"duration={duration!r}: must be a finite number of seconds > 0")
+    substeps(physics, controller.dt)
+    return control_steps(duration, controller.dt)
+
+
+def rollout(robot: RobotSpec, terrain: Terrain, controller: Controller, params, duration: float, key, *,
+            physics: PhysicsConfig = PhysicsConfig(), sensors: SensorConfig = SensorConfig(),
+            config: RolloutConfig = RolloutConfig(), params_batched: bool = False,
+            mesh: Optional[Mesh] = None, backend: str = "mjx", nthread: Optional[int] = None, stats: bool = False):
+    """Roll out a batch of hexapods, one per terrain of `terrain` (leading axis B).
+
+    backend: which engine steps the physics; the control step, sensors and summary are the same.
+      'mjx'  MJX's JAX implementation (default): any device, differentiable (`rollout_function`), shardable.
+      'warp' MJX with MuJoCo Warp kernels (`impl='warp'`; CUDA GPU or CPU; needs warp-lang). Forward only;
+             observations come from MuJoCo contact sensors in the model.
+      'c'    MuJoCo C on `nthread` host threads (default: all cores) through `mujoco.rollout`, every terrain
+             box a static body found by MuJoCo's broadphase; the controller runs in JAX between control steps
+             (`hexjax.sim.backends.mujoco_c`). Forward only; no traces (record=False).
+
+    robot: RobotSpec; terrain: batched Terrain from `hexjax.world.terrain.sample`; controller: a
+    `hexjax.control.Controller`; params: its params pytree (shared, or batched with leading axis B when
+    params_batched); duration: seconds of control after settling; key: PRNG key (initial heading noise and
+    controller init per env); mesh: optional `jax.sharding.Mesh` with an axis named 'batch' to shard the envs
+    over several devices. Returns a `Summary` with leading axis B, or (Summary, RolloutStats) with `stats`.
+    All inputs are checked on the host before anything is traced."""
+    t0 = time.perf_counter()
+    n_ctrl = _check_static(robot, controller, duration, physics, config)
+    if backend not in BACKENDS:
+        raise ValueError(f"backend={backend!r}: use one of {BACKENDS}")
+    if backend != "mjx" and (config.reversible_solver or config.grad_window or config.grad_clip is not None
+                             or config.remat):
+        raise ValueError(f"backend={backend!r} is forward only: the rollout config's gradient options "
+                         f"(reversible_solver, grad_window, grad_clip, remat) need backend='mjx'")
+    if backend != "mjx" and mesh is not None:
+        raise ValueError(f"backend={backend!r}: a device mesh is supported with backend='mjx' only")
+    if not hasattr(terrain, "box_pos") or np.ndim(terrain.box_pos) != 3:
+        raise ValueError("terrain: expected a batched Terrain (box_pos of shape (B, M, 3)); use terrain.sample")
+    b = int(terrain.box_pos.shape[0])
+    if b < 1:
+        raise ValueError(f"terrain batch size={b}: must be >= 1")
+    controller.validate_params(params)
+    if backend == "c":
+        out, compile_s = rollout_c(robot, terrain, controller, params, n_ctrl, key, physics=physics,
+                                   sensors=sensors, config=config, params_batched=params_batched, nthread=nthread)
+    else:
+        impl = "warp" if backend == "warp" else "jax"
+        sm, fn = _compiled(robot, physics, sensors, controller, config, n_ctrl, params_batched, impl)
+        keys = jax.random.split(key, b)
+        model = sm.mjx_model
+        if mesh is not None:
+            if "batch" not in mesh.axis_names:
+                raise ValueError(f"mesh.axis_names={mesh.axis_names!r}: need an axis named 'batch'")
+            n_dev = mesh.shape["batch"]
+            if b % n_dev:
+                raise ValueError(f"terrain batch size={b} must be a multiple of the mesh's {n_dev} 'batch' devices")
+            shard, replicated = NamedSharding(mesh, P("batch")), NamedSharding(mesh, P())
+            terrain = jax.device_put(terrain, shard)
+            keys = jax.device_put(keys, shard)
+            params = jax.device_put(params, shard if params_batched else replicated)
+            model = jax.device_put(model, replicated)
+        args = (model, params, terrain, keys) + ((sm.make_data(b),) if impl == "warp" else ())
+        out, cs = fn.call(*args)
+        compile_s = cs.compile_s
+    if not stats:
+        return out
+    jax.block_until_ready(out)
+    n_steps = (settle_steps(config, controller.dt) + n_ctrl) * substeps(physics, controller.dt)
+    return out, RolloutStats(compile_s=compile_s, wall_s=time.perf_counter() - t0, env_steps=b * n_steps,
+                             backend=backend)
+
+
+def rollout_function(robot: RobotSpec, controller: Controller, duration: float, *,
+                     physics: PhysicsConfig = PhysicsConfig(), sensors: SensorConfig = SensorConfig(),
+                     config: RolloutConfig = RolloutConfig(), params_batched: bool = False):
+    """(model, fn) with fn(model, params, terrain, keys) -> Summary the pure jitted batched rollout, for use
+    inside `jax.grad`, `jax.jit` or `vmap` (e.g. tuning controller params). keys: (B, 2) PRNG keys, one per
+    env. Same checks as `rollout` on the static inputs. For reverse-mode gradients set
+    `RolloutConfig.reversible_solver` (or use a physics config with `iterations=1`): MJX runs its Newton
+    iterations in a lax.while_loop, which JAX cannot reverse."""
+    n_ctrl = _check_static(robot, controller, duration, physics, config)
+    sm, fn = _compiled(robot, physics, sensors, controller, config, n_ctrl, params_batched)
+    return sm.mjx_model, fn.jitted
+
+
+def make_mesh(devices=None) -> Mesh:
+    """A 1-D mesh named 'batch' over the given (default: all visible) devices."""
+    devs = np.asarray(devices if devices is not None else jax.devices())
+    return Mesh(devs.reshape(-1), ("batch",))

@@ -1,0 +1,247 @@
+"""One control step of one env, written once: what the MJX rollout scans, what the Brax env steps, and what
+the MuJoCo C backend's summary is accumulated with.
+
+A control step (period `controller.dt`, `substeps` physics steps):
+  1. terrain slots follow the feet, giving the env's model (`env_view`), and the sensors are read;
+  2. the controller maps (params, state, obs) to joint targets (held at the settle posture while settling);
+  3. `physics` runs the substeps; a step that goes non-finite is undone (`keep_finite`) and flagged;
+  4. `accumulate` folds the step into the env's `Summary` fields: the fall test (`fall_state`), the start
+     pose, energy, path length, travel, tilt and height extremes, tactile counts.
+`make_control_step` composes 1-4 (with the rollout's gradient truncation and bounds) for `lax.scan`.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Optional
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from hexjax.sim.config import PhysicsConfig, RolloutConfig, SensorConfig
+from hexjax.sim.grad import clip_cotangent, cut_gradient
+from hexjax.sim.model import SimModel, assign_slots, env_model, mjx, obs_from_sensordata, place_static_geoms, read_obs
+from hexjax.world.robot import quat_yaw, wrap_angle
+from hexjax.world.terrain import Terrain
+
+# mjx.Data fields that hold one env's state between control steps; with the Warp implementation only these
+# are restored when a step goes non-finite (its contact pool is shared by all envs, so a per-env select
+# over the whole Data is not possible; the rest is recomputed from them by the next step)
+STATE_FIELDS = ("qpos", "qvel", "act", "time", "qacc_warmstart")
+
+
+@struct.dataclass
+class Summary:
+    """Per-env outcome of a rollout (leading axis B on every field). Poses are (x m, y m, yaw rad).
+
+    start_pose / end_pose (B, 3)  torso pose after settling / at the end
+    fell (B,) bool, fall_time (B,) s (inf if none)   torso tilt or height left the safe range (`fall_state`)
+    nan (B,) bool                 the state went non-finite; the env was frozen at its last finite state
+    energy (B,) J                 integral of |torque * joint rate| over all joints
+    path_length (B,) m            horizontal distance travelled by the torso
+    travel (B, 3)                 sum over control steps of the torso's (dx m, dy m, dyaw rad) in the world
+                                  frame: end pose - start pose (yaw unwrapped), with gradients truncated at
+                                  `RolloutConfig.grad_window` boundaries
+    max_tilt (B,) rad, min_height (B,) m (torso centre above the ground plane)
+    tactile_steps (B, 6)          control steps with each leg's tactile pad on
+    trace (B, T, 4) or None       x, y, z, yaw per control step when RolloutConfig.record
+    foot_trace (B, T, 6, 3) or None  foot centres, world frame, m, when RolloutConfig.record
+    ctrl_trace or None            the controller's `trace(state, obs)` per step, when RolloutConfig.record
+    qpos_trace (B, T, 25) or None  full generalised position (torso xyz, quat, 18 joints) per step, when
+                                  RolloutConfig.record (what `hexjax.render` replays)
+    force_trace (B, T, 6, 3), tactile_trace (B, T, 6) or None  each foot's terrain force (N, world) and
+                                  tactile pad on/off per step, when RolloutConfig.record
+    final_state                   the controller state after the last step (reflex counters etc.)
+    """
+
+    start_pose: jax.Array
+    end_pose: jax.Array
+    fell: jax.Array
+    fall_time: jax.Array
+    nan: jax.Array
+    energy: jax.Array
+    path_length: jax.Array
+    travel: jax.Array
+    max_tilt: jax.Array
+    min_height: jax.Array
+    tactile_steps: jax.Array
+    trace: Optional[jax.Array] = None
+    foot_trace: Optional[jax.Array] = None
+    ctrl_trace: Any = None
+    final_state: Any = None
+    qpos_trace: Optional[jax.Array] = None
+    force_trace: Optional[jax.Array] = None
+    tactile_trace: Optional[jax.Array] = None
+
+
+# Counts ----------------------------------------------------------------------------------------------------
+def substeps(physics: PhysicsConfig, ctrl_dt: float) -> int:
+    """Physics steps per control step; the control period must be a whole multiple of the timestep."""
+    n = ctrl_dt / physics.timestep
+    if abs(n - round(n)) > 1e-6 or round(n) < 1:
+        raise ValueError(f"controller.dt={ctrl_dt!r} must be a whole multiple of physics.timestep={physics.timestep!r}")
+    return int(round(n))
+
+
+def settle_steps(cfg: RolloutConfig, ctrl_dt: float) -> int:
+    """Control steps of standing still before the controller starts."""
+    return int(round(cfg.settle_time / ctrl_dt))
+
+
+def control_steps(duration: float, ctrl_dt: float) -> int:
+    """Control steps after settling for a rollout of `duration` s."""
+    return int(math.ceil(duration / ctrl_dt - 1e-9))
+
+
+# The fall test and the accumulators ------------------------------------------------------------------------
+def tilt(q):
+    """Angle between the torso z axis and world z, rad, of quaternions q (..., 4)."""
+    x, y = q[..., 1], q[..., 2]
+    up_z = 1 - 2 * (x * x + y * y)
+    # clipped inside (-1, 1) so the derivative stays finite for an upright torso (jax.grad)
+    return jnp.arccos(jnp.clip(up_z / jnp.maximum(jnp.sum(q * q, -1), 1e-9), -1.0 + 1e-6, 1.0 - 1e-6))
+
+
+def fall_state(cfg: RolloutConfig, qpos, ground_z):
+    """(fallen, tilt rad, height m) of one env's state: fallen when the torso tilts past `cfg.fall_tilt` or its
+    centre comes closer than `cfg.fall_height` to the ground plane."""
+    height = qpos[2] - ground_z
+    t = tilt(qpos[3:7])
+    return (t > cfg.fall_tilt) | (height < cfg.fall_height), t, height
+
+
+def init_acc(start_pose):
+    """Summary accumulators of one env before its first step; `start_pose` (3,) until settling ends."""
+    return dict(start_pose=start_pose, fell=jnp.asarray(False), fall_time=jnp.asarray(jnp.inf),
+                nan=jnp.asarray(False), energy=jnp.asarray(0.0), path_length=jnp.asarray(0.0),
+                travel=jnp.zeros(3), max_tilt=jnp.asarray(0.0), min_height=jnp.asarray(jnp.inf),
+                tactile_steps=jnp.zeros(6, jnp.int32))
+
+
+def accumulate(acc, cfg: RolloutConfig, i, n_settle: int, ctrl_dt: float, q_old, q_new, finite, energy, tactile,
+               ground_z):
+    """The accumulators after control step i (0-based, settling steps included) of one env: q_old, q_new
+    (nq,) the generalised positions before and after it (q_new already reset where the step was not
+    finite), energy () J of the step, tactile (6,) pads on. Settling steps count only for the start pose."""
+    walking = i >= n_settle
+    fallen, t, height = fall_state(cfg, q_new, ground_z)
+    fallen_now = walking & fallen
+    t_now = (i + 1 - n_settle) * ctrl_dt
+    dxy = q_new[:2] - q_old[:2]
+    step_xy = jnp.sqrt(jnp.sum(dxy * dxy) + 1e-18)  # offset keeps the derivative finite at rest
+    pose = jnp.stack([q_new[0], q_new[1], quat_yaw(q_new[3:7])])
+    dyaw = wrap_angle(pose[2] - quat_yaw(q_old[3:7]))
+    return dict(
+        start_pose=jnp.where(i == n_settle - 1, pose, acc["start_pose"]),
+        fell=acc["fell"] | fallen_now,
+        fall_time=jnp.where(fallen_now & ~acc["fell"], t_now, acc["fall_time"]),
+        nan=acc["nan"] | ~finite,
+        energy=acc["energy"] + jnp.where(walking & finite, energy, 0.0),
+        path_length=acc["path_length"] + jnp.where(walking & finite, step_xy, 0.0),
+        travel=acc["travel"] + jnp.where(walking, jnp.concatenate([dxy, dyaw[None]]), 0.0),
+        max_tilt=jnp.maximum(acc["max_tilt"], jnp.where(walking, t, 0.0)),
+        min_height=jnp.minimum(acc["min_height"], jnp.where(walking, height, jnp.inf)),
+        tactile_steps=acc["tactile_steps"] + (walking & tactile).astype(jnp.int32),
+    )
+
+
+def end_pose(qpos):
+    """(x, y, yaw) (..., 3) of generalised positions (..., nq)."""
+    return jnp.stack([qpos[..., 0], qpos[..., 1], quat_yaw(qpos[..., 3:7])], -1)
+
+
+# Model, sensors and physics of one env ---------------------------------------------------------------------
+def env_view(sm: SimModel, sensors: SensorConfig, terrain: Terrain, d, base=None):
+    """(model, data, obs) of one env at data d: slots moved onto the terrain boxes nearest the feet and torso
+    (`base`: the shared model, default `sm.mjx_model`), then the sensors read. With impl='warp' the slots'
+    world poses are set in d too and the sensors are MuJoCo's own."""
+    slot_pos, slot_size = assign_slots(sm, terrain, d.site_xpos[jnp.asarray(sm.foot_sites), :2], d.qpos[:2])
+    m = env_model(sm, terrain, slot_pos, slot_size, base=base)
+    if sm.impl == "warp":
+        d = place_static_geoms(sm, d, terrain, slot_pos)
+        return m, d, obs_from_sensordata(sensors, d.qpos, d.qvel, d.sensordata, d.time)
+    return m, d, read_obs(sm, sensors, m, d)
+
+
+def physics(m, d, n_sub: int):
+    """`n_sub` mjx.step calls: (data after them, actuator power |torque * joint rate| (n_sub,) W)."""
+    def sub(dd, _):
+        dd = mjx.step(m, dd)
+        return dd, jnp.sum(jnp.abs(dd.actuator_force * dd.qvel[6:]))
+
+    return jax.lax.scan(sub, d, None, length=n_sub)
+
+
+def keep_finite(d_new, d, warp: bool = False):
+    """(d_new where its qpos and qvel are finite, else d; finite ()). With Warp only `STATE_FIELDS` revert."""
+    finite = jnp.all(jnp.isfinite(d_new.qpos)) & jnp.all(jnp.isfinite(d_new.qvel))
+    if warp:
+        return d_new.replace(**{f: jnp.where(finite, getattr(d_new, f), getattr(d, f)) for f in STATE_FIELDS}), finite
+    return jax.tree_util.tree_map(lambda a, b: jnp.where(finite, a, b), d_new, d), finite
+
+
+# The control step, as the rollout scans it -----------------------------------------------------------------
+_PROGRESS_SINK = [None]
+
+
+def _report_progress(i):
+    sink = _PROGRESS_SINK[0]
+    if sink is not None:
+        sink(int(i))
+
+
+class progress_to:
+    """Context manager: while open, a rollout compiled with `RolloutConfig.progress_every` > 0 calls
+    `sink(control_step_index)` from the device every `progress_every` steps (e.g. to move a tqdm bar).
+    The index counts settling steps too; the total is settle_time / dt + ceil(duration / dt)."""
+
+    def __init__(self, sink):
+        self.sink = sink
+
+    def __enter__(self):
+        self.prev, _PROGRESS_SINK[0] = _PROGRESS_SINK[0], self.sink
+        return self
+
+    def __exit__(self, *exc):
+        _PROGRESS_SINK[0] = self.prev
+        return False
+
+
+def make_control_step(sm: SimModel, sensors: SensorConfig, cfg: RolloutConfig, controller, n_settle: int):
+    """`step(carry, i, params, terrain, m_shared, ctrl0) -> (carry, record)` of one env for `lax.scan`, with
+    carry = (mjx.Data, controller state, accumulators) and record the step's traces (None unless
+    `cfg.record`). `ctrl0` (18,): the joint targets held while settling."""
+    n_sub = substeps(sm.physics, controller.dt)
+    foot_sites = jnp.asarray(sm.foot_sites)
+    dt = sm.physics.timestep
+
+    def step(carry, i, params, terrain, m_shared, ctrl0):
+        d, cstate, acc = carry
+        if cfg.progress_every:
+            jax.lax.cond((i + 1) % cfg.progress_every == 0,
+                         lambda: jax.debug.callback(_report_progress, i + 1), lambda: None)
+        if cfg.grad_window:
+            d, cstate = cut_gradient((d, cstate), i % cfg.grad_window == 0)
+        if cfg.grad_clip is not None:
+            d, cstate = clip_cotangent((d, cstate), cfg.grad_clip)
+        m, d, obs = env_view(sm, sensors, terrain, d, base=m_shared)
+        new_cstate, action = controller.step(params, cstate, obs)
+        walking = i >= n_settle
+        action = jnp.where(walking, action, ctrl0)
+        cstate = jax.tree_util.tree_map(lambda a, b: jnp.where(walking, a, b), new_cstate, cstate)
+        if cfg.grad_clip is not None:  # the physics' gradient reaches the controller through the action
+            action = clip_cotangent(action, cfg.grad_clip)
+        d = d.replace(ctrl=action)
+        d_new, power = physics(m, d, n_sub)
+        d_new, finite = keep_finite(d_new, d, sm.impl == "warp")
+        acc = accumulate(acc, cfg, i, n_settle, controller.dt, d.qpos, d_new.qpos, finite, jnp.sum(power) * dt,
+                         obs.tactile, terrain.ground_z)
+        out = None
+        if cfg.record:
+            out = dict(pose=jnp.concatenate([d_new.qpos[:3], quat_yaw(d_new.qpos[3:7])[None]]),
+                       feet=d_new.site_xpos[foot_sites], ctrl=controller.trace(cstate, obs),
+                       qpos=d_new.qpos, force=obs.foot_force, tactile=obs.tactile)
+        return (d_new, cstate, acc), out
+
+    return step

@@ -1,0 +1,189 @@
+"""The loop both tuners share (`hexjax.tune.grad`, `hexjax.tune.es`): resume from a checkpoint, evaluate the
+start, step, evaluate on the held-out and validation terrains, checkpoint after every step, and write the
+log and its plot."""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import math
+import os
+import time
+from typing import Any, Dict
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from tqdm.auto import tqdm
+
+from hexjax.tune.config import TuneConfig
+from hexjax.tune.objective import Problem, evaluate_held_out
+
+
+def all_finite(tree) -> bool:
+    """Every leaf of the pytree is finite."""
+    return all(bool(jnp.all(jnp.isfinite(x))) for x in jax.tree_util.tree_leaves(tree))
+
+
+def _flat(tree):
+    return [np.asarray(x) for x in jax.tree_util.tree_leaves(tree)]
+
+
+def config_digest(cfg: TuneConfig, method: str) -> str:
+    """Identifies what a checkpoint continues: the config less the step count and evaluation period (a run
+    may be extended) and less the other method's settings."""
+    d = dataclasses.asdict(cfg)
+    drop = ["steps", "eval_every"] + (["optimizer", "window", "grad_clip"] if method != "grad" else
+                                      ["es_population", "es_sigma"])
+    for k in drop:
+        d.pop(k)
+    return hashlib.sha256(json.dumps([method, d], sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+_COMPILED: Dict[str, Any] = {}
+
+
+def cached(key: str, make):
+    """One compiled function per (config digest, role) in this process (jit caches by function identity,
+    and every `tune` call builds new closures)."""
+    if key not in _COMPILED:
+        _COMPILED[key] = make()
+    return _COMPILED[key]
+
+
+def save_checkpoint(path: str, state, step: int, log: list, digest: str) -> None:
+    """Params, optimiser state (any pytree), step and log, written atomically."""
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    leaves = _flat(state)
+    tmp = path + ".tmp.npz"
+    np.savez(tmp, *leaves, meta=np.frombuffer(json.dumps({"step": step, "log": log, "digest": digest}).encode(), np.uint8))
+    os.replace(tmp, path)
+
+
+def load_checkpoint(path: str, like, digest: str):
+    """(state, step, log) from `path`, shaped like the pytree `like`; refuses a checkpoint of another config."""
+    with np.load(path) as z:
+        meta = json.loads(bytes(z["meta"]).decode())
+        if meta["digest"] != digest:
+            raise ValueError(f"{path}: checkpoint was written by a different config or method; "
+                             "use another --out directory or delete it")
+        n = len(jax.tree_util.tree_leaves(like))
+        leaves = [jnp.asarray(z[f"arr_{i}"]) for i in range(n)]
+    return jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(like), leaves), meta["step"], meta["log"]
+
+
+def drive(problem: Problem, out_dir: str, method: str, digest: str, state, params_of, advance, n_steps: int,
+           rollouts_per_step: int, should_eval, resume: bool, progress: bool, time_limit, t_start: float):
+    """The loop both methods share: resume from out_dir/checkpoint.npz, evaluate the start, then `advance`
+    (state, step) -> (state, log fields) up to `n_steps` times or until `time_limit`, evaluating where
+    `should_eval(step)` and at the end, checkpointing after every step. `params_of(state)` gives the
+    unconstrained params to evaluate."""
+    ckpt = os.path.join(out_dir, "checkpoint.npz")
+    step, log = 0, []
+    if resume and os.path.exists(ckpt):
+        state, step, log = load_checkpoint(ckpt, state, digest)
+        print(f"resumed from {ckpt} at step {step}")
+    em, efn = problem.eval_rollout()
+    bar = tqdm(total=n_steps, initial=step, desc=f"tune ({method})", unit="step", disable=not progress)
+    if step == 0:
+        u = params_of(state)
+        log.append({"step": 0, "rollouts": 0, "wall_s": 0.0, **_evaluate(problem, u, efn, em),
+                    "params": _jsonable(problem.space.physical(u))})
+    while step < n_steps:
+        if time_limit is not None and time.perf_counter() - t_start > time_limit:
+            print(f"time limit {time_limit:.0f} s reached at step {step}")
+            break
+        state, fields = advance(state, step)
+        step += 1
+        u = params_of(state)
+        entry = {"step": step, "rollouts": step * rollouts_per_step, "wall_s": time.perf_counter() - t_start,
+                 **fields, "params": _jsonable(problem.space.physical(u))}
+        if should_eval(step) or step == n_steps:
+            entry.update(_evaluate(problem, u, efn, em))
+        log.append(entry)
+        save_checkpoint(ckpt, state, step, log, digest)
+        bar.set_postfix(train=f"{fields['train_objective']:.3f}", held=f"{_last_held(log):.3f}")
+        bar.update(1)
+    bar.close()
+    if "held_out" not in log[-1]:
+        log[-1].update(_evaluate(problem, params_of(state), efn, em))
+        save_checkpoint(ckpt, state, step, log, digest)
+    return _finish(problem, log, out_dir, method)
+
+
+def _evaluate(problem: Problem, u, fn, model) -> Dict[str, Any]:
+    out = {"held_out": evaluate_held_out(problem, u, fn, model)}
+    if problem.cfg.validation_batch:
+        out["validation"] = evaluate_held_out(problem, u, fn, model, "validation")
+    return out
+
+
+def _last_held(log) -> float:
+    for e in reversed(log):
+        if "held_out" in e:
+            return e["held_out"]["objective"]
+    return math.nan
+
+
+def _jsonable(d):
+    return {k: np.asarray(v).tolist() for k, v in d.items()}
+
+
+def _finish(problem: Problem, log, out_dir: str, method: str) -> Dict[str, Any]:
+    """The run's result: `final` is the evaluated iterate with the lowest validation objective (the last
+    one without a validation set), reported on the held-out set; `last` is the last iterate."""
+    evaluated = [e for e in log if "held_out" in e]
+    key = "validation" if problem.cfg.validation_batch else None
+    pick = min(evaluated, key=lambda e: e[key]["objective"]) if key else evaluated[-1]
+    start = log[0]["held_out"]
+    res = {"method": method, "config": dataclasses.asdict(problem.cfg), "log": log,
+           "start": {"held_out": start, "params": log[0]["params"]},
+           "final": {"step": pick["step"], "rollouts": pick["rollouts"], "held_out": pick["held_out"],
+                     "validation": pick.get("validation"), "params": pick["params"]},
+           "last": {"step": log[-1]["step"], "held_out": log[-1]["held_out"], "params": log[-1]["params"]},
+           "improvement_pct": 100 * (start["objective"] - pick["held_out"]["objective"]) / start["objective"],
+           "selected_by": "picked on the validation terrains" if key else "the last iterate (no validation set)"}
+    os.makedirs(out_dir, exist_ok=True)
+    with open(os.path.join(out_dir, "log.json"), "w") as f:
+        json.dump(res, f, indent=2, default=float)
+    plot_log(res, os.path.join(out_dir, "tune.png"))
+    return res
+
+
+def plot_log(res: Dict[str, Any], path: str) -> None:
+    """Training objective per step and held-out objective at each evaluation, against rollouts used."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    log = res["log"]
+    fig, ax = plt.subplots(figsize=(6, 3.6))
+    tr = [(e["rollouts"], e["train_objective"]) for e in log if "train_objective" in e]
+    if tr:
+        ax.plot(*zip(*tr), ".-", alpha=0.5, label="training batch (smooth)")
+    he = [(e["rollouts"], e["held_out"]["objective"]) for e in log if "held_out" in e]
+    ax.plot(*zip(*he), "o-", label="held-out (hard)")
+    ax.set_xlabel("rollouts used")
+    ax.set_ylabel("objective J (m)")
+    ax.set_title(f"{res['method']}: {res['config']['controller']} {res['config']['gait']} on {res['config']['terrain']}")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def compare_plot(rows, path: str) -> None:
+    """Held-out objective against rollouts used, one line per method (rows: `hexjax.experiments.tuning`)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, ax = plt.subplots(figsize=(6, 3.6))
+    for r in rows:
+        ax.plot(*zip(*r["curve"]), "o-", label=r["method"])
+    ax.set_xscale("symlog", linthresh=8)
+    ax.set_xlabel("rollouts used")
+    ax.set_ylabel("held-out objective J (m, hard mode)")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

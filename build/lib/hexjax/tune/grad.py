@@ -1,0 +1,62 @@
+"""Gradient tuning: Adam (or SGD) on windowed gradients of the smooth objective through MJX (optax), with
+the papers' hand rules as the start (docs/tuning.md, "Why truncated windows")."""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Any, Dict, Optional
+
+import jax
+import optax
+
+from hexjax.tune.config import TuneConfig
+from hexjax.tune.driver import all_finite, cached, config_digest, drive
+from hexjax.tune.objective import Problem
+
+
+def make_optimizer(cfg: TuneConfig):
+    """Adam or SGD at `learning_rate`, cosine-decayed to `decay_to` x that over `steps` when set, after an
+    optional global-norm clip."""
+    o = dict(cfg.optimizer)
+    lr = float(o.get("learning_rate", 0.05))
+    if o.get("decay_to"):
+        lr = optax.cosine_decay_schedule(lr, cfg.steps, alpha=float(o["decay_to"]))
+    opt = optax.adam(lr) if o.get("name", "adam") == "adam" else optax.sgd(lr)
+    if o.get("clip_norm"):
+        opt = optax.chain(optax.clip_by_global_norm(float(o["clip_norm"])), opt)
+    return opt
+
+
+def tune(cfg: TuneConfig, out_dir: str, resume: bool = True, progress: bool = True,
+         time_limit: Optional[float] = None) -> Dict[str, Any]:
+    """Adam (or SGD) on the unconstrained params. Every step draws `train_batch` fresh terrains and takes
+    one windowed gradient of the smooth objective; every `eval_every` steps (and at step 0 and the end) the
+    hard held-out objective is measured. Params, optimiser state and the log are checkpointed to
+    out_dir/checkpoint.npz after every step (a rerun resumes); the log goes to out_dir/log.json and a plot
+    to out_dir/tune.png. `time_limit` (s) stops early, at a step boundary."""
+    t_start = time.perf_counter()
+    problem = Problem.build(cfg)
+    iterations = problem.physics().iterations
+    if cfg.controller == "cpg" and iterations < 4:
+        print(f"note: the CPG on yu2019 needs solver_iterations >= 4 for gradients that agree with finite "
+              f"differences (docs/tuning.md); this config runs {iterations}")
+    u0 = problem.space.init(problem.params0)
+    opt = make_optimizer(cfg)
+    digest = config_digest(cfg, "grad")
+    model, fn = problem.train_rollout(grad=True)
+    vg = cached(digest + "/vg", lambda: jax.jit(jax.value_and_grad(problem.loss_fn(fn, model), has_aux=True)))
+
+    def advance(state, step):
+        u, opt_state = state
+        terr, keys = problem.train_batch(step)
+        (loss, _), g = vg(u, terr, keys)
+        ok = all_finite(g) and math.isfinite(float(loss))
+        if ok:
+            upd, opt_state = opt.update(g, opt_state, u)
+            u = optax.apply_updates(u, upd)
+        return (u, opt_state), {"train_objective": float(loss), "grad_finite": ok,
+                                "grad_norm": float(optax.global_norm(g)) if ok else None}
+
+    return drive(problem, out_dir, "grad", digest, (u0, opt.init(u0)), lambda st: st[0], advance, cfg.steps,
+                  cfg.train_batch, lambda step: step % cfg.eval_every == 0, resume, progress, time_limit, t_start)

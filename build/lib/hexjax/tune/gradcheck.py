@@ -1,0 +1,50 @@
+"""Autodiff against central finite differences, per parameter group (issue 5's gradient check)."""
+
+from __future__ import annotations
+
+from typing import Callable, Dict, List, Mapping
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+
+def central_differences(f: Callable, u0: Mapping[str, jax.Array], eps: float) -> Dict[str, np.ndarray]:
+    """(f(u + eps e_j) - f(u - eps e_j)) / (2 eps) for every entry j of every array in u0 (flattened)."""
+    fd = {}
+    for k, v in u0.items():
+        col = np.zeros(v.size)
+        for j in range(v.size):
+            d = jnp.zeros(v.size).at[j].set(eps).reshape(v.shape)
+            col[j] = (float(f({**u0, k: v + d})) - float(f({**u0, k: v - d}))) / (2 * eps)
+        fd[k] = col
+    return fd
+
+
+def group_cosines(grad: Mapping[str, jax.Array], fd: Mapping[str, np.ndarray],
+                  groups: Mapping[str, List[str]]) -> Dict[str, tuple]:
+    """Per group: (cosine of autodiff with central differences, autodiff vector, FD vector)."""
+    out = {}
+    for group, names in groups.items():
+        a = np.concatenate([np.ravel(np.asarray(grad[n])) for n in names])
+        b = np.concatenate([fd[n] for n in names])
+        out[group] = (float(a @ b / (np.linalg.norm(a) * np.linalg.norm(b) + 1e-30)), a, b)
+    return out
+
+
+def travel_objective(fn, model, space, params, terrain, keys):
+    """obj(u) -> the mean travel x + 0.3 y + 0.1 yaw of a batch: the smooth objective the gradient checks use
+    (tests/test_tune.py, scripts/fd_probe.py). fn, model: `rollout_function`'s; space: the `ParamSpace` of
+    the unconstrained params u; params: the rest of the controller's params."""
+    def obj(u):
+        s = fn(model, space.apply(u, params), terrain, keys)
+        return jnp.mean(s.travel[:, 0]) + 0.3 * jnp.mean(s.travel[:, 1]) + 0.1 * jnp.mean(s.travel[:, 2])
+    return obj
+
+
+def check(obj: Callable, u0: Mapping[str, jax.Array], groups: Mapping[str, List[str]], eps=(1e-3,)):
+    """Per central-difference step in `eps`: {group: (cosine, autodiff vector, FD vector)}, with the jitted
+    autodiff gradient of `obj` at `u0` taken once. Returns (objective at u0, {eps: results})."""
+    value, grad = jax.jit(jax.value_and_grad(obj))(u0)
+    f = jax.jit(obj)
+    return float(value), {e: group_cosines(grad, central_differences(f, u0, e), groups) for e in eps}

@@ -1,0 +1,51 @@
+"""Presets as data: every robot, terrain, experiment and tuning preset is a YAML file under `configs/`.
+
+    configs/robots/<name>.yaml       -> `RobotSpec`    (`get_robot`)
+    configs/terrains/<name>.yaml     -> `TerrainSpec`  (`get_terrain`)
+    configs/experiments/<name>.yaml  -> an experiment's options and fixed numbers (`hexjax.experiments`)
+    configs/tune/<name>.yaml         -> `TuneConfig`   (`hexjax.tune.config`)
+
+Wherever a preset name is taken, a path to a YAML file of one's own is taken too (`--robot my.yaml`).
+The folder is found from the package itself (`hexjax/configs` links to the repository's `configs/`, and a
+wheel carries a copy), so presets load from any working directory.
+
+Every file is checked on load, before anything is traced: an unknown (misspelt) key, a value of the wrong
+type, a non-finite number, or a value the spec's own `validate()` refuses raises one ValueError line that
+names the file, the key and the value.
+"""
+
+from __future__ import annotations
+
+from hexjax.world.files import build, read_yaml, resolve
+from hexjax.world.robot import RobotSpec
+from hexjax.world.terrain import TerrainSpec
+
+
+def get_robot(name: str) -> RobotSpec:
+    """`RobotSpec` of preset `name` (configs/robots/<name>.yaml) or of a YAML file path. A file without
+    `name` takes its file name."""
+    path = resolve("robots", name)
+    return build(RobotSpec, read_yaml(path), str(path), "robot", defaults={"name": path.stem})
+
+
+def get_terrain(name: str, **overrides) -> TerrainSpec:
+    """`TerrainSpec` of preset `name` (configs/terrains/<name>.yaml) or of a YAML file path, with keys
+    replaced by `overrides` (checked like the file's own)."""
+    path = resolve("terrains", name)
+    raw = {**read_yaml(path), **overrides}
+    return build(TerrainSpec, raw, str(path), "terrain")
+
+
+def luneckas2020() -> RobotSpec:
+    """The 18-DOF hexapod of Luneckas 2020 Sect. 2.1 (configs/robots/luneckas2020.yaml)."""
+    return get_robot("luneckas2020")
+
+
+def yu2019() -> RobotSpec:
+    """The virtual hexapod of Yu 2019 Table 3 (configs/robots/yu2019.yaml)."""
+    return get_robot("yu2019")
+
+
+def chen2019() -> RobotSpec:
+    """A hexapod sized for the rugged patch of Chen 2019 Sect. 3.1 (configs/robots/chen2019.yaml)."""
+    return get_robot("chen2019")

@@ -1,0 +1,173 @@
+"""`hexjax bench`: throughput of the full rollout (controller + sensors + physics) at several batch sizes,
+with MuJoCo C's single-thread speed on the same model as a reference ratio."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import platform
+import time
+from typing import Dict, Sequence
+
+import jax
+import mujoco
+import numpy as np
+from tqdm.auto import tqdm
+
+from hexjax.control.avoid_gait import AvoidGaitController
+from hexjax.control.cpg import CPGController
+from hexjax.control.gait import GaitController
+from hexjax.control.tactile import TactileGaitController
+from hexjax.sim.config import PhysicsConfig, RolloutConfig, physics_for
+from hexjax.sim.model import batch_model, sim_model
+from hexjax.sim.rollout import BACKENDS, make_mesh, rollout
+from hexjax.world.presets import get_robot, get_terrain
+from hexjax.world.terrain import sample
+
+# the controllers a bench row can run: the Luneckas 2020 open-loop gait, the Yu 2019 CPG, the Luneckas 2020
+# tactile switch, and the gait steered by the Zhao 2018 planner (37 candidates scored every control step)
+CONTROLLERS = {"gait": GaitController, "cpg": CPGController, "tactile": TactileGaitController,
+               "avoid": AvoidGaitController}
+
+
+def mujoco_c_steps_per_s(robot: str, terrain: str, physics: PhysicsConfig, seconds: float = 2.0) -> float:
+    """Single-thread mj_step rate on the same MJCF, slots placed on a sampled terrain, gait running."""
+    spec = get_robot(robot)
+    sm = sim_model(spec, physics)
+    m = mujoco.MjModel.from_xml_string(sm.xml)
+    mx, _ = batch_model(sm, sample(get_terrain(terrain), jax.random.PRNGKey(0), 1))
+    m.geom_pos[:] = np.asarray(mx.geom_pos[0])
+    m.geom_size[:] = np.asarray(mx.geom_size[0])
+    d = mujoco.MjData(m)
+    mujoco.mj_resetDataKeyframe(m, d, 0)
+    ctrl = GaitController(spec)
+    p = ctrl.default_params()
+    step = jax.jit(lambda s: ctrl.step(p, s, None))
+    st = ctrl.init(p, None)
+    n_sub = int(round(ctrl.dt / physics.timestep))
+    targets = []
+    for _ in range(200):
+        st, a = step(st)
+        targets.append(np.asarray(a))
+    n, t0 = 0, time.perf_counter()
+    while time.perf_counter() - t0 < seconds:
+        d.ctrl[:] = targets[(n // n_sub) % len(targets)]
+        mujoco.mj_step(m, d)
+        n += 1
+    return n / (time.perf_counter() - t0)
+
+
+def bench(robot: str = "luneckas2020", batches: Sequence[int] = (16, 64, 256), sim_seconds: float = 2.0,
+          terrains: Sequence[str] = ("flat", "high-large"), gait: str = "tripod",
+          physics: PhysicsConfig = PhysicsConfig(), repeats: int = 2, progress: bool = True,
+          controller: str = "gait", backend: str = "mjx", nthread: int = 0, devices: int = 1) -> Dict:
+    """Times `rollout` at each batch size on each terrain. env-steps = envs x physics steps.
+
+    backend: a comma list of rollout backends ('mjx', 'warp', 'c'; see `hexjax.sim.rollout.rollout`), each
+    timed on the same terrains, batches and controllers; nthread: MuJoCo C threads (0: all cores).
+    devices: shard each batch over this many of the visible devices (backend 'mjx'; the batch is the total,
+    so 2 devices at B = 65,536 compare with 1 device at B = 32,768 for scaling).
+    Each timed call is the whole rollout (model setup, controller, sensors, physics, summary); its first call
+    (compile, and for 'c' the per-env model copies) is reported apart as compile_s / first_call_s.
+
+    controller: a comma list of 'gait' (seed-000 open-loop gait), 'cpg' (Yu 2019 CPG with reflexes and FSM),
+    'tactile' (seed-000 gait with the tactile overcoming switch), 'avoid' (the seed-000 gait steered by the
+    Zhao 2018 planner, scoring its 37 candidates every control step); 'both' means 'gait,cpg'. With 'gait' in the
+    list every other controller's row gets `overhead_vs_gait` = gait rate / its rate - 1."""
+    if not isinstance(repeats, int) or repeats < 0:
+        raise ValueError(f"repeats={repeats!r}: must be an integer >= 0")
+    for b in batches:
+        if not isinstance(b, int) or b < 1:
+            raise ValueError(f"batches entry {b!r}: must be an integer >= 1")
+    names = ["gait", "cpg"] if controller == "both" else controller.split(",")
+    bad = [n for n in names if n not in ("gait", "cpg", "tactile", "avoid")]
+    if bad or not names:
+        raise ValueError(f"controller={controller!r}: a comma list of 'gait', 'cpg', 'tactile', 'avoid' (or 'both')")
+    backends = backend.split(",")
+    bad = [x for x in backends if x not in BACKENDS]
+    if bad or not backends:
+        raise ValueError(f"backend={backend!r}: a comma list of {BACKENDS}")
+    if not isinstance(devices, int) or not 1 <= devices <= len(jax.devices()):
+        raise ValueError(f"devices={devices!r}: must be between 1 and the {len(jax.devices())} visible device(s)")
+    if devices > 1 and backends != ["mjx"]:
+        raise ValueError(f"devices={devices}: sharding over devices needs backend='mjx', got {backend!r}")
+    for b in batches:
+        if b % devices:
+            raise ValueError(f"batches entry {b}: must be a multiple of devices={devices}")
+    mesh = None
+    if devices > 1:
+        mesh = make_mesh(jax.devices()[:devices])
+    spec = get_robot(robot)
+    ctrls = {}
+    for n in names:
+        ctrls[n] = CONTROLLERS[n](spec, gait=gait)
+    cfg = RolloutConfig()
+    n_phys = int(round((sim_seconds + cfg.settle_time) / physics.timestep))
+    rows = []
+    jobs = [(t, b, c, be) for be in backends for t in terrains for b in batches for c in ctrls]
+    for tname, b, cname, be in tqdm(jobs, desc="bench", disable=not progress):
+        ctrl = ctrls[cname]
+        params = ctrl.default_params()
+        tspec = get_terrain(tname)
+        terr = sample(tspec, jax.random.PRNGKey(0), b)
+        phys = physics_for(tspec.kind, physics)
+        kw = dict(physics=phys, config=cfg, backend=be, nthread=nthread or None, mesh=mesh)
+        out, st = rollout(spec, terr, ctrl, params, sim_seconds, jax.random.PRNGKey(1), stats=True, **kw)
+        first, compile_s = st.wall_s, st.compile_s
+        best = first if repeats == 0 else np.inf  # repeats=0: the first call (with its compile) is the timing
+        for r in range(repeats):
+            t0 = time.perf_counter()
+            out = rollout(spec, terr, ctrl, params, sim_seconds, jax.random.PRNGKey(2 + r), **kw)
+            jax.block_until_ready(out.end_pose)
+            best = min(best, time.perf_counter() - t0)
+        rows.append(dict(terrain=tname, batch=b, controller=cname, backend=be, pairs=sim_model(spec, phys).n_pairs,
+                         compile_s=round(compile_s, 2), first_call_s=round(first, 2), repeats=repeats,
+                         run_s=round(best, 4), env_steps_per_s=round(b * n_phys / best, 1),
+                         nan=int(np.asarray(out.nan).sum()), fell=int(np.asarray(out.fell).sum()),
+                         tactile_steps=int(np.asarray(out.tactile_steps).sum()),
+                         mean_travel_x=round(float(np.mean(np.asarray(out.travel)[:, 0])), 4)))
+        if progress:
+            tqdm.write(f"{be} {tname} B={b} {cname}: compile {compile_s:.1f} s, {rows[-1]['env_steps_per_s']:.0f} env-steps/s, "
+                       f"{rows[-1]['fell']} fell, {rows[-1]['nan']} nan, tactile events {rows[-1]['tactile_steps']}")
+    ref = {t: mujoco_c_steps_per_s(robot, t, physics_for(get_terrain(t).kind, physics)) for t in terrains}
+    for r in rows:
+        r["mujoco_c_1thread_steps_per_s"] = round(ref[r["terrain"]], 1)
+        r["ratio_vs_mujoco_c_1thread"] = round(r["env_steps_per_s"] / ref[r["terrain"]], 3)
+    if "gait" in ctrls:
+        rate = {(r["terrain"], r["batch"], r["controller"], r["backend"]): r["env_steps_per_s"] for r in rows}
+        for r in rows:
+            if r["controller"] != "gait":
+                r["overhead_vs_gait"] = round(rate[(r["terrain"], r["batch"], "gait", r["backend"])]
+                                              / r["env_steps_per_s"] - 1.0, 3)
+    dev = jax.devices()[0]
+    return dict(robot=robot, gait=gait, controller=controller, backends=backend, nthread=nthread or os.cpu_count(),
+                sim_seconds=sim_seconds, physics_steps_per_env=n_phys,
+                physics=dataclasses.asdict(physics), backend=jax.default_backend(),
+                device=f"{dev.platform}:{getattr(dev, 'device_kind', '')}", n_devices=len(jax.devices()),
+                devices_used=devices,
+                host=platform.node(), cpu_count=os.cpu_count(), jax=jax.__version__,
+                mujoco=mujoco.__version__, date=time.strftime("%Y-%m-%d"), rows=rows)
+
+
+def format_bench(res: Dict) -> str:
+    head = (f"{'backend':<7} {'terrain':<11} {'ctrl':<7} {'pairs':>5} {'batch':>7} {'compile s':>9} {'env-steps/s':>12} "
+            f"{'MuJoCo C 1thr':>13} {'ratio':>6} {'vs gait':>8}")
+    lines = [f"{res['device']} ({res['backend']}, {res['n_devices']} device(s), {res.get('devices_used', 1)} used), {res['sim_seconds']} s simulated, "
+             f"robot {res['robot']}", head]
+    for r in res["rows"]:
+        extra = f"{100 * r['overhead_vs_gait']:+7.1f}%" if "overhead_vs_gait" in r else ""
+        lines.append(f"{r.get('backend', 'mjx'):<7} {r['terrain']:<11} {r.get('controller', 'gait'):<7} {r['pairs']:5d} {r['batch']:7d} "
+                     f"{r['compile_s']:9.1f} {r['env_steps_per_s']:12.0f} "
+                     f"{r['mujoco_c_1thread_steps_per_s']:13.0f} {r['ratio_vs_mujoco_c_1thread']:6.2f} {extra:>8}")
+    return "\n".join(lines)
+
+
+# The command (configs/commands/bench.yaml) ---------------------------------------------------------------------
+def run(o, entry) -> Dict:
+    return bench(robot=o.robot, batches=o.batches, sim_seconds=o.seconds, terrains=o.terrains,
+                 controller=",".join(o.controller), backend=",".join(o.backend), nthread=o.nthread,
+                 devices=o.devices, repeats=o.repeats)
+
+
+def report(res: Dict) -> str:
+    return format_bench(res)

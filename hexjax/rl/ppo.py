@@ -1,0 +1,66 @@
+"""Brax PPO on `HexapodGoalEnv` (`hexjax ppo`): a smoke size for a 2-core CPU by default."""
+
+from __future__ import annotations
+
+import time
+from typing import Dict
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+from hexjax.rl.env import HexapodGoalEnv
+
+
+def _device_put_replicated(x, devices):
+    """`jax.device_put_replicated`, removed in jax 0.10 but still called by brax 0.14.2's PPO: each leaf stacked
+    once per device along a new leading axis, that axis sharded over `devices` (the replacement the JAX pmap
+    migration guide gives)."""
+    devices = list(devices)
+    sharding = NamedSharding(Mesh(np.array(devices), ("d",)), PartitionSpec("d"))
+    return jax.tree_util.tree_map(lambda a: jax.device_put(jnp.stack([jnp.asarray(a)] * len(devices)), sharding), x)
+
+
+def train_ppo(env: HexapodGoalEnv, num_timesteps: int = 60_000, num_envs: int = 16, episode_length: int = 100,
+              num_evals: int = 4, seed: int = 0, progress=None, **ppo_kwargs):
+    """Brax PPO on `env`. Returns (eval history [(env steps, mean episode reward)], make_policy, params).
+    Defaults are a smoke size for a 2-core CPU; raise num_timesteps / num_envs on a GPU."""
+    from brax.training.agents.ppo import train as ppo  # brax is the optional `rl` extra
+    if "device_put_replicated" not in vars(jax):  # brax 0.14.2 on jax >= 0.10 (see _device_put_replicated)
+        jax.device_put_replicated = _device_put_replicated
+    history = []
+
+    def on_progress(step, metrics):
+        history.append((int(step), float(metrics["eval/episode_reward"])))
+        if progress is not None:
+            progress(step, metrics)
+
+    kw = dict(num_timesteps=num_timesteps, num_envs=num_envs, episode_length=episode_length, num_evals=num_evals,
+              batch_size=num_envs, num_minibatches=4, unroll_length=10, num_updates_per_batch=4,
+              learning_rate=3e-4, entropy_cost=1e-3, discounting=0.97, normalize_observations=True,
+              num_eval_envs=num_envs, seed=seed, progress_fn=on_progress)
+    kw.update(ppo_kwargs)
+    make_policy, params, _ = ppo.train(environment=env, **kw)
+    return history, make_policy, params
+
+
+# The command (configs/commands/ppo.yaml) ------------------------------------------------------------------------
+def run(o, entry) -> Dict:
+    env = HexapodGoalEnv(robot=o.robot, terrain=o.terrain, goal_distance=o.goal)
+    t0 = time.perf_counter()
+    history, _, _ = train_ppo(env, num_timesteps=o.timesteps, num_envs=o.envs, episode_length=o.episode_length,
+                              num_evals=o.evals, seed=o.seed,
+                              progress=lambda step, m: print(f"  {int(step):>9,} env steps: eval episode reward "
+                                                             f"{float(m['eval/episode_reward']):.3f}", flush=True))
+    return {"robot": o.robot, "terrain": o.terrain, "goal_m": o.goal, "timesteps": o.timesteps, "num_envs": o.envs,
+            "episode_length": o.episode_length, "seed": o.seed,
+            "history": [{"env_steps": s, "eval_episode_reward": r} for s, r in history],
+            "wall_s": time.perf_counter() - t0, "device": str(jax.devices()[0].platform)}
+
+
+def report(res: Dict) -> str:
+    h = res["history"]
+    return (f"Brax PPO on HexapodGoalEnv ({res['robot']}, {res['terrain']}, goal {res['goal_m']:g} m): eval episode "
+            f"reward {h[0]['eval_episode_reward']:.3f} -> {h[-1]['eval_episode_reward']:.3f} over "
+            f"{h[-1]['env_steps']:,} env steps in {res['wall_s']:.0f} s")

@@ -1,0 +1,211 @@
+"""MuJoCo C backend of the rollout: the same robot, terrain, controller and summary as the MJX rollout, with
+the physics stepped by MuJoCo C on all host cores (`mujoco.rollout`, one thread pool).
+
+How it differs from the MJX path, and why:
+- Terrain. MJX checks a fixed list of geom pairs, so hexjax moves a few slot boxes under each foot every
+  control step. MuJoCo C has a broadphase, so here every terrain box is a geom of its own (`terrain_<j>`,
+  `build_mjcf(..., terrain_boxes=M)`) and each env gets its own `MjModel` with its boxes in place. The contact
+  parameters are the slot pairs' (condim 3, same friction, default solref / solimp).
+- Sensors. Observations come from MuJoCo contact sensors declared in the model
+  (`hexjax.sim.model.obs_from_sensordata`): net foot force in the world frame, summed normal force per foot and
+  per pad, as `read_obs` computes from MJX's solver rows.
+- The controller runs as JAX on the host between control steps, vmapped over the envs of a chunk; the physics
+  of one control step (dt / timestep substeps) is one `Rollout.rollout` call over the chunk.
+- The summary is folded by `hexjax.sim.step.accumulate`, the MJX rollout's own arithmetic, in float32 (MuJoCo
+  C's state is float64).
+- Forward only (no gradients), no per-step traces. At the very first control step the sensors read zero (no
+  step has run yet); with the default settle time that step is a settling step, whose action is fixed.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+import os
+import time
+from typing import Optional
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from mujoco import rollout as mj_rollout
+
+from hexjax.sim.config import PhysicsConfig, RolloutConfig, SensorConfig
+from hexjax.sim.mjcf import PARKED_Z, build_mjcf, sensor_layout
+from hexjax.sim.model import actuator_forces, obs_from_sensordata
+from hexjax.sim.step import Summary, accumulate, end_pose, init_acc, settle_steps, substeps
+from hexjax.world.robot import RobotSpec
+
+_FULL = mujoco.mjtState.mjSTATE_FULLPHYSICS
+
+
+@dataclasses.dataclass
+class _Template:
+    model: mujoco.MjModel
+    box_geoms: np.ndarray
+    box_bodies: np.ndarray
+    box_bvh: np.ndarray
+    ground_geom: int
+    qpos0: np.ndarray
+    ctrl0: np.ndarray
+    nstate: int
+    pool: list  # MjModel copies reused across calls (filling one costs a few us, copying one ~0.3 ms)
+
+
+@functools.lru_cache(maxsize=4)
+def _template(robot: RobotSpec, physics: PhysicsConfig, n_boxes: int) -> _Template:
+    phys = dataclasses.replace(physics, slots_per_leg=0, torso_slots=0)
+    m = mujoco.MjModel.from_xml_string(build_mjcf(robot, phys, contact_sensors=True, terrain_boxes=n_boxes))
+    gid = lambda n: mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, n)
+    key = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_KEY, "stance")
+    assert m.nsensordata == sensor_layout()["size"]
+    bodies = np.array([mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, f"terrain_{j}") for j in range(n_boxes)], dtype=int)
+    return _Template(model=m, box_geoms=np.array([gid(f"terrain_{j}") for j in range(n_boxes)], dtype=int),
+                     box_bodies=bodies, box_bvh=np.asarray(m.body_bvhadr[bodies], dtype=int),
+                     ground_geom=gid("ground"), qpos0=np.array(m.key_qpos[key]), ctrl0=np.array(m.key_ctrl[key]),
+                     nstate=mujoco.mj_stateSize(m, _FULL), pool=[])
+
+
+def _models(tp: _Template, box_pos, box_half, box_valid, ground_z):
+    """One MjModel per env (from the reused pool) with that env's terrain boxes and ground height."""
+    n = box_pos.shape[0]
+    while len(tp.pool) < n:
+        tp.pool.append(mujoco.MjModel.__copy__(tp.model))
+    pos = np.where(box_valid[..., None], box_pos, np.array([0.0, 0.0, PARKED_Z]))
+    half = np.where(box_valid[..., None], box_half, 0.01)
+    out = tp.pool[:n]
+    for i, mi in enumerate(out):
+        mi.body_pos[tp.box_bodies] = pos[i]
+        mi.geom_size[tp.box_geoms] = half[i]
+        # collision culling reads the bounding sphere, the geom's box and its body's bounding-volume node,
+        # which the compiler made for the placeholder size
+        mi.geom_rbound[tp.box_geoms] = np.linalg.norm(half[i], axis=-1)
+        mi.geom_aabb[tp.box_geoms, 3:] = half[i]
+        mi.bvh_aabb[tp.box_bvh, 3:] = half[i]
+        mi.geom_pos[tp.ground_geom, 2] = ground_z[i]
+    return out
+
+
+def rollout_c(robot: RobotSpec, terrain, controller, params, n_ctrl: int, key, *, physics: PhysicsConfig,
+              sensors: SensorConfig, config: RolloutConfig, params_batched: bool = False,
+              nthread: Optional[int] = None, chunk: int = 8192, progress: bool = False):
+    """`hexjax.sim.rollout.rollout` with backend='c' (checked there): (the same `Summary`, with no traces;
+    seconds spent compiling the controller step). nthread: MuJoCo threads (default: all cores); chunk: envs
+    per pass (bounds memory; the controller is compiled once for this size)."""
+    if config.record:
+        raise ValueError("backend='c' keeps no per-step traces: use RolloutConfig(record=False) or backend='mjx'")
+    nthread = int(nthread or os.cpu_count() or 1)
+    if nthread < 1:
+        raise ValueError(f"nthread={nthread!r}: must be >= 1")
+    box_pos, box_half = np.asarray(terrain.box_pos, np.float64), np.asarray(terrain.box_half, np.float64)
+    box_valid, ground_z = np.asarray(terrain.box_valid, bool), np.asarray(terrain.ground_z, np.float64)
+    b = box_pos.shape[0]
+    # MuJoCo's broadphase sorts every body at every step, parked or not: keep only as many box bodies as the
+    # fullest terrain of the batch has boxes, each env's valid boxes first (148 slots -> ~70 on high-large)
+    order = np.argsort(~box_valid, axis=1, kind="stable")
+    n_boxes = max(1, int(box_valid.sum(1).max()))
+    box_pos, box_half, box_valid = (np.take_along_axis(x, order[..., None] if x.ndim == 3 else order, 1)[:, :n_boxes]
+                                    for x in (box_pos, box_half, box_valid))
+    tp = _template(robot, physics, n_boxes)
+    m0 = tp.model
+    nq, nv, nu = m0.nq, m0.nv, m0.nu
+    n_sub = substeps(physics, controller.dt)
+    n_settle = settle_steps(config, controller.dt)
+    dt = physics.timestep
+    chunk = max(1, min(int(chunk), b))
+    n_chunks = math.ceil(b / chunk)
+
+    keys = jax.random.split(key, b)
+    yaw0 = np.asarray(jax.vmap(lambda k: jax.random.uniform(jax.random.split(k)[0], (), minval=-config.yaw_noise,
+                                                            maxval=config.yaw_noise))(keys))
+    k_ctrl = jax.vmap(lambda k: jax.random.split(k)[1])(keys)
+    step_fn, init_fn, ctrl0_fn = _controller_fns(controller, sensors, 0 if params_batched else None)
+    acc_fn = _accumulator(config, controller.dt, n_settle)
+
+    outs = []
+    compile_s = 0.0
+    if progress:
+        from tqdm.auto import tqdm
+        bar = tqdm(total=n_chunks * (n_settle + n_ctrl), desc="mujoco-c", unit="ctrl step")
+    with mj_rollout.Rollout(nthread=nthread) as pool:
+        datas = [mujoco.MjData(m0) for _ in range(nthread)]
+        for c in range(n_chunks):
+            idx = np.arange(c * chunk, (c + 1) * chunk) % b  # the last chunk wraps round; its extras are dropped
+            take = lambda x: jax.tree_util.tree_map(lambda a: a[idx], x)
+            prm = take(params) if params_batched else params
+            models = _models(tp, box_pos[idx], box_half[idx], box_valid[idx], ground_z[idx])
+            cstate = init_fn(prm, k_ctrl[idx])
+            ctrl0 = ctrl0_fn(prm)
+            ctrl0 = np.broadcast_to(tp.ctrl0 if ctrl0 is None else np.asarray(ctrl0), (chunk, nu)).astype(np.float64)
+            # initial state: neutral stance at (0, 0, yaw0), joints at the settle posture
+            qpos = np.broadcast_to(tp.qpos0, (chunk, nq)).copy()
+            yw = yaw0[idx]
+            qpos[:, 3], qpos[:, 6] = np.cos(yw / 2), np.sin(yw / 2)
+            qpos[:, 7:] = ctrl0
+            state = np.zeros((chunk, tp.nstate))
+            state[:, 1:1 + nq] = qpos
+            sens = np.zeros((chunk, m0.nsensordata))
+            st_out = np.empty((chunk, n_sub, tp.nstate))
+            sd_out = np.empty((chunk, n_sub, m0.nsensordata))
+            acc = jax.vmap(init_acc)(jnp.stack([jnp.zeros(chunk), jnp.zeros(chunk), jnp.asarray(yw, jnp.float32)], -1))
+            gz = jnp.asarray(ground_z[idx], jnp.float32)
+            if c == 0:  # compile the controller step (timed apart, as the MJX rollout's compile is)
+                t0 = time.perf_counter()
+                jax.block_until_ready(step_fn(prm, cstate, qpos, state[:, 1 + nq:1 + nq + nv], sens, state[:, 0]))
+                compile_s = time.perf_counter() - t0
+            for i in range(n_settle + n_ctrl):
+                q, v = state[:, 1:1 + nq], state[:, 1 + nq:1 + nq + nv]
+                new_cstate, action, tactile = step_fn(prm, cstate, q, v, sens, state[:, 0])
+                if i >= n_settle:
+                    cstate = new_cstate
+                    action = np.asarray(action, np.float64)
+                else:
+                    action = ctrl0
+                control = np.repeat(action[:, None, :], n_sub, axis=1)
+                pool.rollout(models, datas, state, control, control_spec=mujoco.mjtState.mjSTATE_CTRL,
+                             nstep=n_sub, state=st_out, sensordata=sd_out, skip_checks=True)
+                new_state = st_out[:, -1]
+                finite = np.all(np.isfinite(new_state), axis=1)
+                power = np.abs(actuator_forces(sd_out) * st_out[..., 1 + nq + 6:1 + nq + nv]).sum((1, 2))
+                new_state = np.where(finite[:, None], new_state, state)
+                acc = acc_fn(acc, i, q.astype(np.float32), new_state[:, 1:1 + nq].astype(np.float32), finite,
+                             (power * dt).astype(np.float32), tactile, gz)
+                state = new_state
+                sens = np.where(finite[:, None], sd_out[:, -1], sens)
+                if progress:
+                    bar.update(1)
+            outs.append((acc, cstate, state[:, 1:1 + nq].astype(np.float32)))
+    if progress:
+        bar.close()
+    cat = lambda *xs: jnp.concatenate(xs)[:b]
+    acc = jax.tree_util.tree_map(cat, *[o[0] for o in outs])
+    final = jax.tree_util.tree_map(cat, *[o[1] for o in outs])
+    q_end = cat(*[o[2] for o in outs])
+    return Summary(end_pose=end_pose(q_end), final_state=final, **acc), compile_s
+
+
+@functools.lru_cache(maxsize=16)
+def _controller_fns(controller, sensors: SensorConfig, p_axis):
+    """Jitted, vmapped controller step (from MuJoCo's sensordata), init and settle posture of one chunk."""
+    def step(params, cstate, qpos, qvel, sens, t):
+        obs = obs_from_sensordata(sensors, qpos.astype(jnp.float32), qvel.astype(jnp.float32),
+                                  sens.astype(jnp.float32), t.astype(jnp.float32))
+        new, action = controller.step(params, cstate, obs)
+        return new, action, obs.tactile
+
+    step_b = jax.jit(jax.vmap(step, in_axes=(p_axis, 0, 0, 0, 0, 0)))
+    init_b = jax.jit(jax.vmap(controller.init, in_axes=(p_axis, 0)))
+    # (n, nu) for batched params, (nu,) for shared ones (broadcast by the caller), or None: the stance
+    ctrl0_b = jax.jit(jax.vmap(controller.initial_action) if p_axis == 0 else controller.initial_action)
+    return step_b, init_b, ctrl0_b
+
+
+@functools.lru_cache(maxsize=16)
+def _accumulator(config: RolloutConfig, ctrl_dt: float, n_settle: int):
+    """`hexjax.sim.step.accumulate` over a chunk of envs (the MJX rollout's own summary arithmetic)."""
+    def one(acc, i, q_old, q_new, finite, energy, tactile, ground_z):
+        return accumulate(acc, config, i, n_settle, ctrl_dt, q_old, q_new, finite, energy, tactile, ground_z)
+
+    return jax.jit(jax.vmap(one, in_axes=(0, None, 0, 0, 0, 0, 0, 0)))

@@ -1,0 +1,175 @@
+"""The tuning objective and the problem both tuners share: controllers, terrains, the smooth training and the
+hard held-out rollouts (docs/tuning.md).
+
+Objective (per env, in metres; `configs/tune/*.yaml` sets the weights w):
+
+    J = sqrt(w_dx dx^2 + w_dy dy^2) + w_dalpha |dalpha| + w_fall fell + w_energy E
+
+with dx, dy, dalpha the positional errors at the goal of Luneckas 2020 Sect. 2.5 (a straight walk of
+`distance` m along the start heading, errors in the start frame), `fell` 1 for a fall or a non-finite
+state, E the joint energy (J). The batch objective is the mean over envs. With w_dx = w_dy = 1 the first
+term is the paper's goal error (its "relative error" times the distance).
+
+Two forms of the same rollout:
+- training ("smooth"): sigmoid gates (the tactile switch, the CPG's FSM), the same physics as evaluation
+  with MJX's Newton iterations traced as a scan (`RolloutConfig.reversible_solver`), a per-step bound on
+  the backward flow through the physics (`RolloutConfig.grad_clip`), and truncated windows
+  (`RolloutConfig.grad_window`): the gradient of the travel is the sum over windows of its gradient with
+  the window's start state held fixed. The fall indicator has no pathwise gradient; it counts in the
+  value only.
+- held-out evaluation ("hard"): the controller's step-function gates, unseen terrain seeds. This is the
+  number the tuning is judged by.
+
+Why truncated windows: over a whole walk the rollout is chaotic in its parameters. Over 1 m the exact
+gradient of the advance reaches 1e13-1e14 (scripts/fd_noise_tactile.py); over windows of a fraction of a
+second it matches central differences (tests/test_tune.py). The windowed gradient is biased (it ignores
+how a change in one window moves the next window's start), in exchange for a variance that does not
+explode with the horizon.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any, Dict, Optional
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from hexjax.control.cpg import CPGController
+from hexjax.control.tactile import TactileGaitController
+from hexjax.sim.config import PhysicsConfig, RolloutConfig, physics_for
+from hexjax.sim.rollout import rollout_function
+from hexjax.tune.config import TuneConfig
+from hexjax.tune.space import ParamSpace
+from hexjax.world.presets import get_robot, get_terrain
+from hexjax.world.terrain import pad_terrain, sample
+
+ROBOTS = {"tactile": "luneckas2020", "cpg": "yu2019"}
+
+
+def travel_errors(summary, distance: float):
+    """(dx, dy, dalpha) per env from `Summary.travel` (differentiable, truncated at window boundaries) in
+    the start frame of each env: dx = distance - advance (> 0: short), dy lateral (> 0: left)."""
+    yaw0 = summary.start_pose[:, 2]
+    c, s = jnp.cos(yaw0), jnp.sin(yaw0)
+    tx, ty, tyaw = summary.travel[:, 0], summary.travel[:, 1], summary.travel[:, 2]
+    return distance - (c * tx + s * ty), -s * tx + c * ty, tyaw
+
+
+def per_env_objective(summary, distance: float, weights: Dict[str, float]):
+    """J per env (B,), see the module docstring. Envs that went non-finite count as fallen."""
+    w = lambda k: float(weights.get(k, 0.0))
+    dx, dy, da = travel_errors(summary, distance)
+    # the 1e-8 m^2 keeps the square root's derivative finite at a perfect landing
+    j = jnp.sqrt(w("dx") * dx * dx + w("dy") * dy * dy + 1e-8)
+    j = j + w("dalpha") * jnp.abs(da) + w("energy") * summary.energy
+    bad = (summary.fell | summary.nan).astype(j.dtype)
+    return jnp.where(summary.nan, 0.0, j) + w("fall") * bad
+
+
+@dataclasses.dataclass
+class Problem:
+    """Everything a tuning run evaluates, built once from a validated `TuneConfig`."""
+
+    cfg: TuneConfig
+    space: ParamSpace
+    robot: Any
+    train_ctrl: Any
+    eval_ctrl: Any
+    params0: Any
+    duration: float
+    spec: Any
+
+    @classmethod
+    def build(cls, cfg: TuneConfig) -> "Problem":
+        cfg.validate()
+        robot = get_robot(ROBOTS[cfg.controller])
+        train_ctrl, params0, duration = _controller(cfg, robot, smooth=True)
+        eval_ctrl, _, _ = _controller(cfg, robot, smooth=False)
+        space = cfg.space()
+        space.validate(params0)
+        spec = get_terrain(cfg.terrain, length=cfg.distance + 0.3)
+        return cls(cfg, space, robot, train_ctrl, eval_ctrl, params0, duration, spec)
+
+    # terrains: training batches are drawn fresh every step; held-out terrains come from another key
+    def _keys(self):
+        root = jax.random.PRNGKey(self.cfg.seed)
+        return jax.random.split(root, 4)  # train terrains, train headings, held-out, validation
+
+    def train_batch(self, step: int, n: Optional[int] = None):
+        k_t, k_h = self._keys()[:2]
+        n = n or self.cfg.train_batch
+        terr = pad_terrain(sample(self.spec, jax.random.fold_in(k_t, step), n), self.spec.max_boxes)
+        return terr, jax.random.split(jax.random.fold_in(k_h, step), n)
+
+    def eval_batch(self, which: str = "held_out"):
+        """The fixed terrains of the held-out test set (judges the tuning) or of the validation set (picks
+        which iterate a run returns); neither is ever trained on."""
+        k_e = self._keys()[2 if which == "held_out" else 3]
+        n = self.cfg.held_out_batch if which == "held_out" else self.cfg.validation_batch
+        terr = pad_terrain(sample(self.spec, k_e, n), self.spec.max_boxes)
+        return terr, jax.random.split(jax.random.fold_in(k_e, 1), n)
+
+    def train_rollout(self, grad: bool, params_batched: bool = False):
+        """(model, fn) of the smooth rollout; `grad` adds the truncation, bound and remat."""
+        window = max(1, int(round(self.cfg.window / self.train_ctrl.dt)))
+        rc = RolloutConfig(grad_clip=self.cfg.grad_clip, grad_window=window, remat=True,
+                           reversible_solver=True) if grad else RolloutConfig()
+        return rollout_function(self.robot, self.train_ctrl, self.duration, physics=self.physics(),
+                                config=rc, params_batched=params_batched)
+
+    def eval_rollout(self):
+        return rollout_function(self.robot, self.eval_ctrl, self.duration, physics=self.physics())
+
+    def physics(self) -> PhysicsConfig:
+        """The terrain's physics, with `solver_iterations` Newton iterations where the config sets them;
+        training and evaluation share it, so the gradient is of the physics the result is judged on."""
+        base = PhysicsConfig()
+        if self.cfg.solver_iterations is not None:
+            base = dataclasses.replace(base, iterations=self.cfg.solver_iterations)
+        return physics_for(self.spec.kind, base)
+
+    def loss_fn(self, fn, model):
+        """loss(u, terrain, keys) -> (mean J, per-env J) for unconstrained params u."""
+        def loss(u, terrain, keys):
+            s = fn(model, self.space.apply(u, self.params0), terrain, keys)
+            j = per_env_objective(s, self.cfg.distance, self.cfg.objective)
+            return jnp.mean(j), j
+        return loss
+
+
+def _controller(cfg: TuneConfig, robot, smooth: bool):
+    """(controller, starting params = the papers' hand rules, rollout seconds)."""
+    if cfg.controller == "tactile":
+        c = TactileGaitController(robot, gait=cfg.gait, max_obstacle_height=cfg.max_obstacle_height, smooth=smooth)
+        ncyc, dur = c.duration_for(cfg.distance)
+        c = dataclasses.replace(c, n_cycles=ncyc)
+        p = c.default_params()
+        if cfg.temperature is not None:
+            p = p.replace(temperature=jnp.float32(cfg.temperature))
+        if "swing_time" in cfg.space().names:  # the rollout must cover the slowest walk the bounds allow
+            hi = dict(cfg.space().bounds)["swing_time"].hi
+            dur = dur * hi / float(p.swing_time)
+        return c, p, dur
+    c = CPGController(robot, gait=cfg.gait, smooth=smooth)
+    p = c.default_params()
+    if cfg.temperature is not None:
+        p = p.replace(temp_force=jnp.float32(cfg.temperature))
+    return c, p, cfg.horizon
+
+
+def evaluate_held_out(problem: Problem, u, fn=None, model=None, which: str = "held_out") -> Dict[str, float]:
+    """Hard-mode objective and goal errors of params u on the held-out (or validation) terrains."""
+    if fn is None:
+        model, fn = problem.eval_rollout()
+    terr, keys = problem.eval_batch(which)
+    s = fn(model, problem.space.apply(u, problem.params0), terr, keys)
+    j = np.asarray(per_env_objective(s, problem.cfg.distance, problem.cfg.objective))
+    dx, dy, da = (np.asarray(x) for x in travel_errors(s, problem.cfg.distance))
+    err = np.hypot(dx, dy)
+    return {"objective": float(j.mean()), "goal_error_cm": 100 * float(err.mean()),
+            "rel_error_pct": 100 * float(err.mean()) / problem.cfg.distance, "dx_cm": 100 * float(dx.mean()),
+            "dy_cm": 100 * float(dy.mean()), "abs_dalpha_deg": math.degrees(float(np.abs(da).mean())),
+            "fall_pct": 100 * float(np.asarray(s.fell).mean()), "nan_envs": int(np.asarray(s.nan).sum())}

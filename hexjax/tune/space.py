@@ -1,0 +1,177 @@
+"""Tunable parameter spaces: which controller numbers an optimiser may move, within which bounds, and the
+reparametrisation that keeps every iterate physical (issue 5).
+
+An optimiser works on unconstrained arrays u; a bounded field is p = lo + (hi - lo) sigmoid(u) (two-sided)
+or p = lo + softplus(u) (one-sided, hi = None), so Adam's steps can never produce a negative height or a
+threshold outside its range. Fields are named by their attribute path in the controller's params pytree
+(`overcome_height`, `lc_trim`, `net.k`); a field may be an array (every entry gets the same bounds).
+
+Presets follow the papers' hand rules and the robots' reach:
+- "tactile" (seed 000, `TactileGaitController`): l_i, h_i, l_k, h_k, the swing slot (gait period / T) and
+  the pad threshold;
+- "cpg" (seed 003, `CPGController`): the linear converters' trims (g, h per joint, swing and stance), the
+  F_contact thresholds, T_s, and the elevator's regenerated clearance.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any, Dict, Mapping, Optional
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+
+@dataclasses.dataclass(frozen=True)
+class Bound:
+    """lo <= p <= hi (hi None: p >= lo only), in the field's SI units."""
+
+    lo: float
+    hi: Optional[float] = None
+
+    def validate(self, name: str) -> None:
+        if not math.isfinite(self.lo):
+            raise ValueError(f"params.{name}.min={self.lo!r}: must be finite")
+        if self.hi is not None and not (math.isfinite(self.hi) and self.hi > self.lo):
+            raise ValueError(f"params.{name}: min={self.lo!r} must be < max={self.hi!r} (both finite)")
+
+
+def _softplus_inv(x):
+    # log(exp(x) - 1), written to stay finite for large x
+    return x + jnp.log(-jnp.expm1(-x))
+
+
+def to_physical(u, b: Bound):
+    """Unconstrained u -> bounded p (sigmoid to [lo, hi], or lo + softplus)."""
+    if b.hi is None:
+        return b.lo + jax.nn.softplus(u)
+    # the clip only removes float32 rounding past a bound (its gradient there is ~0 anyway)
+    return jnp.clip(b.lo + (b.hi - b.lo) * jax.nn.sigmoid(u), b.lo, b.hi)
+
+
+def to_unconstrained(p, b: Bound, margin: float = 1e-6):
+    """Inverse of `to_physical`; p is pulled inside the open interval by `margin` (relative) first."""
+    p = jnp.asarray(p, jnp.float32)
+    if b.hi is None:
+        return _softplus_inv(jnp.maximum(p - b.lo, margin * max(1.0, abs(b.lo))))
+    width = b.hi - b.lo
+    f = jnp.clip((p - b.lo) / width, margin, 1 - margin)
+    return jnp.log(f) - jnp.log1p(-f)
+
+
+def _get(obj, path: str):
+    for part in path.split("."):
+        obj = getattr(obj, part)
+    return obj
+
+
+def _set(obj, path: str, value):
+    head, _, rest = path.partition(".")
+    if not rest:
+        return obj.replace(**{head: value})
+    return obj.replace(**{head: _set(getattr(obj, head), rest, value)})
+
+
+def _has(obj, path: str) -> bool:
+    try:
+        _get(obj, path)
+        return True
+    except AttributeError:
+        return False
+
+
+@dataclasses.dataclass(frozen=True)
+class ParamSpace:
+    """A set of bounded fields of one controller's params pytree. `bounds`: ((path, Bound), ...)."""
+
+    bounds: tuple
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Bound]) -> "ParamSpace":
+        return cls(tuple(sorted(d.items())))
+
+    @property
+    def names(self):
+        return tuple(n for n, _ in self.bounds)
+
+    def validate(self, params) -> None:
+        """Every field exists in `params`, has sane bounds, and its current value lies inside them."""
+        if not self.bounds:
+            raise ValueError("params: the space is empty, name at least one field to tune")
+        for name, b in self.bounds:
+            b.validate(name)
+            if not _has(params, name):
+                raise ValueError(f"params.{name}: unknown parameter for this controller")
+            v = np.asarray(_get(params, name), dtype=float)
+            hi = math.inf if b.hi is None else b.hi
+            if not np.all(np.isfinite(v)) or np.any(v < b.lo) or np.any(v > hi):
+                raise ValueError(f"params.{name}={v.tolist()!r}: the starting value is outside [{b.lo}, {hi}]")
+
+    def init(self, params) -> Dict[str, jax.Array]:
+        """Unconstrained arrays u (one per field) that map back to `params`' current values."""
+        self.validate(params)
+        return {name: to_unconstrained(_get(params, name), b) for name, b in self.bounds}
+
+    def apply(self, u: Mapping[str, Any], params):
+        """`params` with each tuned field replaced by to_physical(u[field]) (pure, differentiable)."""
+        for name, b in self.bounds:
+            params = _set(params, name, to_physical(u[name], b).astype(jnp.asarray(_get(params, name)).dtype))
+        return params
+
+    def physical(self, u: Mapping[str, Any]) -> Dict[str, np.ndarray]:
+        """The physical values of u, as numpy, for logs."""
+        return {name: np.asarray(to_physical(u[name], b)) for name, b in self.bounds}
+
+
+SPACES: Dict[str, Dict[str, Bound]] = {
+    # seed 000: the basic and the overcoming step (Eqs. 5-7), the transfer time and the pad threshold
+    "tactile": {
+        "step_length": Bound(0.01, 0.08),  # l_i, m; the robot's l_max is 10 cm (Eq. 15)
+        "step_height": Bound(0.01, 0.10),  # h_i, m
+        "overcome_length": Bound(0.02, 0.10),  # l_k, m; 2 l_i by hand (Eq. 6)
+        "overcome_height": Bound(0.02, 0.12),  # h_k, m; H + 2 cm by hand (Eq. 7), h_max 12 cm (Eq. 15)
+        "swing_time": Bound(0.2, 3.0),  # one transfer slot, s (sets the gait period T)
+        "tactile_threshold": Bound(0.05, 5.0),  # N
+    },
+    # seed 003: linear-converter trims, contact thresholds (Eqs. 8-9), T_s (Eq. 11), regenerated clearance
+    "cpg": {
+        "lc_trim": Bound(-0.3, 0.3),  # rad, added to the IK-derived g and h of Eq. 6
+        "f_contact": Bound(0.5, 50.0),  # N
+        "ramp_time": Bound(0.05, 2.0),  # s
+        "elevated_clearance": Bound(0.04, 0.12),  # m
+        "clearance": Bound(0.02, 0.08),  # m
+    },
+}
+
+
+def make_space(controller: str, overrides: Optional[Mapping[str, Mapping[str, float]]] = None,
+               only: Optional[list] = None) -> ParamSpace:
+    """The preset space of `controller` ('tactile' or 'cpg'), restricted to `only` (field names) and with
+    bounds replaced from `overrides` ({field: {"min": lo, "max": hi}}, as in configs/tune/*.yaml)."""
+    if controller not in SPACES:
+        raise ValueError(f"controller={controller!r}: choose one of {sorted(SPACES)}")
+    base = dict(SPACES[controller])
+    for name in list(only or []) + list(overrides or {}):
+        if name not in base:
+            raise ValueError(f"params.{name}: unknown parameter for controller {controller!r}; "
+                             f"tunable: {sorted(base)}")
+    if only:
+        base = {k: base[k] for k in only}
+    for name, o in (overrides or {}).items():
+        if not isinstance(o, Mapping):
+            raise ValueError(f"params.{name}={o!r}: must be a mapping of min and max")
+        unknown = set(o) - {"min", "max"}
+        if unknown:
+            raise ValueError(f"params.{name}: unknown keys {sorted(unknown)}; use min and max")
+        for k in ("min", "max"):
+            v = o.get(k)
+            if k in o and not (v is None and k == "max") and (isinstance(v, bool) or not isinstance(v, (int, float))):
+                raise ValueError(f"params.{name}.{k}={v!r}: must be a number")
+        lo = float(o.get("min", base[name].lo))
+        hi = o.get("max", base[name].hi)
+        base[name] = Bound(lo, None if hi is None else float(hi))
+    for name, b in base.items():
+        b.validate(name)
+    return ParamSpace.from_dict(base)

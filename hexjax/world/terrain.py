@@ -1,0 +1,315 @@
+"""Terrains: the spec of a family (`TerrainSpec`, presets in configs/terrains/), its batched generators, and
+views of a sampled terrain for planners and plots.
+
+Every terrain is a set of axis-aligned boxes standing on (or, for ditches, around) a ground plane;
+see docs/terrain.md for why boxes were chosen over a heightfield. A batch is sampled from PRNG keys
+in one jitted, vmapped call and has fixed shapes: `max_boxes` per env, unused boxes masked off.
+
+Categories (Luneckas 2020 Sect. 2.2, Eq. 16; Yu 2019 Sect. 6; Chen 2019 Sect. 3.1):
+  obstacle fields: density low (R >= 15 cm) / high (10 < R < 15 cm) between obstacle centres,
+                   height small (3-5 cm) / large (6-8 cm), length 2-3 cm, random width;
+  step (40 mm), ditches (18 / 40 / 80 mm deep), rugged wave patch (400 x 800 mm, peaks ~178 mm),
+  random uniform roughness, flat.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+from typing import Tuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+KINDS = ("flat", "obstacles", "step", "ditch", "waves", "rough")
+MAX_EXTENT = 50.0  # m: no terrain dimension beyond this
+MAX_BOXES = 20_000  # boxes per terrain: a batch holds this many per env
+
+
+@struct.dataclass
+class Terrain:
+    """One terrain (or a batch, with a leading axis on every field). SI units, world frame.
+
+    box_pos:   (M, 3) box centres, m
+    box_half:  (M, 3) box half extents, m
+    box_valid: (M,) bool, False for padding entries
+    ground_z:  () height of the ground plane, m
+    """
+
+    box_pos: jax.Array
+    box_half: jax.Array
+    box_valid: jax.Array
+    ground_z: jax.Array
+
+
+@dataclasses.dataclass(frozen=True)
+class TerrainSpec:
+    """Static description of a terrain family; sampling draws one member per PRNG key. Lengths in m."""
+
+    kind: str = "flat"
+    length: float = 1.3  # extent of the populated corridor along x, m
+    width: float = 0.7  # corridor width along y, m
+    start_x: float = 0.25  # obstacles begin here (robot starts at x = 0)
+    # obstacle fields
+    spacing_range: Tuple[float, float] = (0.12, 0.13)  # hex-lattice spacing
+    jitter: float = 0.009  # each centre moved within this radius
+    drop_max: float = 0.0  # fraction of lattice sites dropped at most (thins low-density fields)
+    height_range: Tuple[float, float] = (0.03, 0.05)
+    length_range: Tuple[float, float] = (0.02, 0.03)  # along x
+    width_range: Tuple[float, float] = (0.03, 0.08)  # along y
+    # step / ditch
+    step_length_range: Tuple[float, float] = (0.15, 0.3)
+    step_side: str = "right"  # 'right', 'left' or 'full'
+    ditch_count: int = 3
+    ditch_width_range: Tuple[float, float] = (0.06, 0.09)
+    ditch_gap_range: Tuple[float, float] = (0.25, 0.35)  # solid ground between ditches
+    # grids (waves, rough)
+    cell: float = 0.02
+    taper: float = 0.0  # waves: heights fade to 0 over this many m inside the patch's edges (0: cut off)
+    slots_per_leg: int = 2  # terrain boxes each leg collides with at a time (see sim.model)
+
+    def validate(self) -> None:
+        """Raise one ValueError line naming the first bad field and its value; also refuses families whose
+        terrains would not fit a batch (more than `MAX_BOXES` boxes each)."""
+        if self.kind not in KINDS:
+            raise ValueError(f"terrain.kind={self.kind!r}: choose one of {KINDS}")
+        for f, hi in (("length", MAX_EXTENT), ("width", MAX_EXTENT), ("cell", 1.0), ("jitter", 1.0)):
+            v = getattr(self, f)
+            if not (math.isfinite(v) and v >= 0) or (f != "jitter" and v == 0):
+                raise ValueError(f"terrain.{f}={v!r}: must be a finite number > 0")
+            if v > hi:
+                raise ValueError(f"terrain.{f}={v!r}: must be at most {hi} m")
+        if not (math.isfinite(self.start_x) and abs(self.start_x) <= MAX_EXTENT):
+            raise ValueError(f"terrain.start_x={self.start_x!r}: must be a finite number within {MAX_EXTENT} m of 0")
+        if not (math.isfinite(self.taper) and 0 <= self.taper <= 0.5 * min(self.length, self.width)):
+            raise ValueError(f"terrain.taper={self.taper!r}: must be in [0, half the patch's shorter side]")
+        for f in ("spacing_range", "height_range", "length_range", "width_range", "step_length_range",
+                  "ditch_width_range", "ditch_gap_range"):
+            lo, hi = getattr(self, f)
+            if not (math.isfinite(lo) and math.isfinite(hi)):
+                raise ValueError(f"terrain.{f}={(lo, hi)!r}: must be finite")
+            if lo > hi:
+                raise ValueError(f"terrain.{f}={(lo, hi)!r}: min must be <= max")
+            if lo < 0:
+                raise ValueError(f"terrain.{f}={(lo, hi)!r}: must be >= 0")
+            if hi > MAX_EXTENT:
+                raise ValueError(f"terrain.{f}={(lo, hi)!r}: must be at most {MAX_EXTENT} m")
+        if self.kind == "obstacles" and self.spacing_range[0] <= 2 * self.jitter:
+            raise ValueError(f"terrain.spacing_range={self.spacing_range!r}: must exceed 2 * jitter")
+        if not 0 <= self.drop_max < 1:
+            raise ValueError(f"terrain.drop_max={self.drop_max!r}: must be in [0, 1)")
+        if self.step_side not in ("right", "left", "full"):
+            raise ValueError(f"terrain.step_side={self.step_side!r}: use 'right', 'left' or 'full'")
+        if not 1 <= self.ditch_count <= 100:
+            raise ValueError(f"terrain.ditch_count={self.ditch_count!r}: must be in [1, 100]")
+        if not 1 <= self.slots_per_leg <= 8:
+            raise ValueError(f"terrain.slots_per_leg={self.slots_per_leg!r}: must be in [1, 8]")
+        if self.max_boxes > MAX_BOXES:
+            raise ValueError(f"terrain: {self.max_boxes} boxes per terrain (length={self.length!r}, width="
+                             f"{self.width!r}, cell / spacing); at most {MAX_BOXES}")
+
+    # Static sizes -------------------------------------------------------------------------------
+    def _lattice_n(self) -> int:
+        radius = 0.5 * math.hypot(self.length, self.width) + self.spacing_range[1]
+        return int(math.ceil(radius / (0.5 * math.sqrt(3) * self.spacing_range[0]))) + 1
+
+    def _grid_shape(self) -> Tuple[int, int]:
+        return int(round(self.length / self.cell)), int(round(self.width / self.cell))
+
+    @property
+    def max_boxes(self) -> int:
+        """Static number of box entries per terrain (padding included)."""
+        if self.kind == "flat":
+            return 1
+        if self.kind == "obstacles":
+            a = self.spacing_range[0] - 2 * self.jitter
+            area = (self.length + a) * (self.width + a)
+            return int(math.ceil(area / (0.5 * math.sqrt(3) * a * a) * 1.15)) + 4
+        if self.kind == "step":
+            return 1
+        if self.kind == "ditch":
+            return self.ditch_count + 1
+        nx, ny = self._grid_shape()
+        return nx * ny
+
+
+def _obstacle_field(spec: TerrainSpec, key) -> Terrain:
+    """Jittered, rotated hexagonal lattice clipped to the corridor (Luneckas 2020 Sect. 2.2).
+
+    Lattice spacing a and jitter j bound every nearest-neighbour distance to [a - 2j, a + 2j];
+    dropping sites only increases it, so presets pick a, j, drop to satisfy the category's R range."""
+    ks = jax.random.split(key, 9)
+    n = spec._lattice_n()
+    a = jax.random.uniform(ks[0], (), minval=spec.spacing_range[0], maxval=spec.spacing_range[1])
+    theta = jax.random.uniform(ks[1], (), maxval=math.pi / 3)
+    offset = jax.random.uniform(ks[2], (2,)) * a
+    i, j = jnp.meshgrid(jnp.arange(-n, n + 1), jnp.arange(-n, n + 1), indexing="ij")
+    i, j = i.reshape(-1), j.reshape(-1)
+    lx = a * (i + 0.5 * j) + offset[0]
+    ly = a * (0.5 * math.sqrt(3) * j) + offset[1]
+    c, s = jnp.cos(theta), jnp.sin(theta)
+    centre = jnp.array([spec.start_x + 0.5 * spec.length, 0.0])
+    px = c * lx - s * ly + centre[0]
+    py = s * lx + c * ly + centre[1]
+    r = spec.jitter * jnp.sqrt(jax.random.uniform(ks[3], px.shape))
+    phi = jax.random.uniform(ks[4], px.shape, maxval=2 * math.pi)
+    px, py = px + r * jnp.cos(phi), py + r * jnp.sin(phi)
+    inside = ((px >= spec.start_x) & (px <= spec.start_x + spec.length) & (jnp.abs(py) <= 0.5 * spec.width))
+    drop = jax.random.uniform(ks[5], ()) * spec.drop_max
+    keep = inside & (jax.random.uniform(ks[6], px.shape) >= drop)
+    order = jnp.argsort(~keep, stable=True)[: spec.max_boxes]
+    m = spec.max_boxes
+    h = jax.random.uniform(ks[7], (m,), minval=spec.height_range[0], maxval=spec.height_range[1])
+    lw = jax.random.uniform(ks[8], (m, 2))
+    length = spec.length_range[0] + lw[:, 0] * (spec.length_range[1] - spec.length_range[0])
+    width = spec.width_range[0] + lw[:, 1] * (spec.width_range[1] - spec.width_range[0])
+    valid = keep[order]
+    pos = jnp.stack([px[order], py[order], 0.5 * h], axis=-1)
+    half = jnp.stack([0.5 * length, 0.5 * width, 0.5 * h], axis=-1)
+    return Terrain(box_pos=pos, box_half=half, box_valid=valid, ground_z=jnp.zeros(()))
+
+
+def _step(spec: TerrainSpec, key) -> Terrain:
+    """One step obstacle (Yu 2019 Sect. 6.1: 40 mm, on the right side of the path)."""
+    k1, k2, k3 = jax.random.split(key, 3)
+    h = jax.random.uniform(k1, (), minval=spec.height_range[0], maxval=spec.height_range[1])
+    length = jax.random.uniform(k2, (), minval=spec.step_length_range[0], maxval=spec.step_length_range[1])
+    x0 = spec.start_x + jax.random.uniform(k3, ()) * 0.25 * spec.length
+    # the step runs 0.5 m past the corridor's side, so a robot that veers cannot walk round it
+    w = 0.5 * spec.width + 0.5
+    y_lo, y_hi = {"right": (-w, -0.06), "left": (0.06, w), "full": (-w, w)}[spec.step_side]
+    pos = jnp.array([[x0 + 0.5 * length, 0.5 * (y_lo + y_hi), 0.5 * h]])
+    half = jnp.array([[0.5 * length, 0.5 * (y_hi - y_lo), 0.5 * h]])
+    return Terrain(box_pos=pos, box_half=half, box_valid=jnp.ones((1,), bool), ground_z=jnp.zeros(()))
+
+
+def _ditch(spec: TerrainSpec, key) -> Terrain:
+    """Striped ground with `ditch_count` ditches across the path (Yu 2019 Sect. 6.2: 18/40/80 mm deep).
+
+    The ground plane sits at the ditch bottom; solid ground is a row of slabs with top at z = 0."""
+    k1, k2, k3 = jax.random.split(key, 3)
+    n = spec.ditch_count
+    depth = jax.random.uniform(k1, (), minval=spec.height_range[0], maxval=spec.height_range[1])
+    widths = jax.random.uniform(k2, (n,), minval=spec.ditch_width_range[0], maxval=spec.ditch_width_range[1])
+    gaps = jax.random.uniform(k3, (n - 1,), minval=spec.ditch_gap_range[0], maxval=spec.ditch_gap_range[1])
+    starts = spec.start_x + jnp.concatenate([jnp.zeros(1), jnp.cumsum(widths[:-1] + gaps)])
+    ends = starts + widths
+    x_lo = jnp.concatenate([jnp.array([-1.0]), ends])
+    x_hi = jnp.concatenate([starts, jnp.array([spec.start_x + spec.length + 1.0])])
+    x_hi = jnp.maximum(x_hi, x_lo + 0.01)
+    pos = jnp.stack([0.5 * (x_lo + x_hi), jnp.zeros(n + 1), jnp.full(n + 1, -0.5) * depth], axis=-1)
+    half = jnp.stack([0.5 * (x_hi - x_lo), jnp.full(n + 1, 0.5 * spec.width + 0.5), jnp.full(n + 1, 0.5) * depth], -1)
+    return Terrain(box_pos=pos, box_half=half, box_valid=jnp.ones((n + 1,), bool), ground_z=-depth)
+
+
+def _grid_boxes(spec: TerrainSpec, heights) -> Terrain:
+    nx, ny = spec._grid_shape()
+    xc = spec.start_x + (jnp.arange(nx) + 0.5) * spec.cell
+    yc = (jnp.arange(ny) + 0.5) * spec.cell - 0.5 * spec.width
+    x, y = jnp.meshgrid(xc, yc, indexing="ij")
+    h = jnp.maximum(heights, 0.002)
+    pos = jnp.stack([x, y, 0.5 * h], axis=-1).reshape(-1, 3)
+    half = jnp.stack([jnp.full_like(h, 0.5 * spec.cell), jnp.full_like(h, 0.5 * spec.cell), 0.5 * h], -1).reshape(-1, 3)
+    return Terrain(box_pos=pos, box_half=half, box_valid=jnp.ones((nx * ny,), bool), ground_z=jnp.zeros(()))
+
+
+def _waves(spec: TerrainSpec, key) -> Terrain:
+    """Rugged wave patch (Chen 2019 Sect. 3.1: 400 x 800 mm, peaks to ~178 mm) as a grid of columns:
+    a sum of four random products of sinusoids, rescaled so its maximum is the sampled peak height."""
+    k1, k2, k3 = jax.random.split(key, 3)
+    nx, ny = spec._grid_shape()
+    x = (jnp.arange(nx) + 0.5)[:, None] * spec.cell
+    y = (jnp.arange(ny) + 0.5)[None, :] * spec.cell
+    lam = jax.random.uniform(k1, (4, 2), minval=0.2, maxval=0.6)
+    ph = jax.random.uniform(k2, (4, 2), maxval=2 * math.pi)
+    f = sum(jnp.sin(2 * math.pi * x / lam[k, 0] + ph[k, 0]) * jnp.sin(2 * math.pi * y / lam[k, 1] + ph[k, 1])
+            for k in range(4))
+    f = (f - f.min()) / (f.max() - f.min() + 1e-9)
+    peak = jax.random.uniform(k3, (), minval=spec.height_range[0], maxval=spec.height_range[1])
+    if spec.taper > 0:  # a patch rising out of a flat floor: a smooth ramp from every edge
+        ramp = lambda d: jnp.clip(d / spec.taper, 0.0, 1.0) ** 2 * (3.0 - 2.0 * jnp.clip(d / spec.taper, 0.0, 1.0))
+        lx, ly = nx * spec.cell, ny * spec.cell
+        f = f * ramp(jnp.minimum(x, lx - x)) * ramp(jnp.minimum(y, ly - y))
+    return _grid_boxes(spec, peak * f)
+
+
+def _rough(spec: TerrainSpec, key) -> Terrain:
+    """Random uniform roughness: each grid cell an independent height in height_range."""
+    nx, ny = spec._grid_shape()
+    h = jax.random.uniform(key, (nx, ny), minval=spec.height_range[0], maxval=spec.height_range[1])
+    return _grid_boxes(spec, h)
+
+
+def _flat(spec: TerrainSpec, key) -> Terrain:
+    del spec, key
+    return Terrain(box_pos=jnp.array([[0.0, 0.0, -5.0]]), box_half=jnp.full((1, 3), 0.01),
+                   box_valid=jnp.zeros((1,), bool), ground_z=jnp.zeros(()))
+
+
+_GENERATORS = {"flat": _flat, "obstacles": _obstacle_field, "step": _step, "ditch": _ditch,
+               "waves": _waves, "rough": _rough}
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _sample(spec: TerrainSpec, keys) -> Terrain:
+    return jax.vmap(functools.partial(_GENERATORS[spec.kind], spec))(keys)
+
+
+def sample_one(spec: TerrainSpec, key) -> Terrain:
+    """One terrain of family `spec` (no batch axis), pure JAX: for use inside a traced function (an env's
+    reset). Check the spec first (`spec.validate()`); `sample` does that for batches."""
+    return _GENERATORS[spec.kind](spec, key)
+
+
+def sample(spec: TerrainSpec, key, batch: int) -> Terrain:
+    """Sample `batch` terrains of family `spec` from one PRNG key: a Terrain with leading axis B."""
+    spec.validate()
+    if not isinstance(batch, (int, np.integer)) or batch < 1:
+        raise ValueError(f"batch={batch!r}: must be an integer >= 1")
+    return _sample(spec, jax.random.split(key, int(batch)))
+
+
+# The four obstacle categories of Luneckas 2020 Sect. 2.2 (presets in configs/terrains/)
+LUNECKAS2020_CATEGORIES = ("low-small", "low-large", "high-small", "high-large")
+
+
+def pad_terrain(t: Terrain, m: int) -> Terrain:
+    """A batched terrain padded to `m` boxes with invalid entries, so terrains of several families share one
+    compiled rollout."""
+    cur = t.box_pos.shape[-2]
+    if cur > m:
+        raise ValueError(f"terrain has {cur} boxes, more than the pad size {m}")
+    if cur == m:
+        return t
+    pad = [(0, 0)] * (t.box_pos.ndim - 2) + [(0, m - cur), (0, 0)]
+    return Terrain(box_pos=jnp.pad(t.box_pos, pad, constant_values=-5.0),
+                   box_half=jnp.pad(t.box_half, pad, constant_values=0.01),
+                   box_valid=jnp.pad(t.box_valid, pad[:-1], constant_values=False), ground_z=t.ground_z)
+
+
+# Views for planners and plots ------------------------------------------------------------------
+def obstacle_circles(terrain: Terrain):
+    """Obstacles as circles for planners (Zhao 2018 Eq. 1): centres (..., M, 2) m, radii (..., M) m
+    (half the footprint diagonal), valid (..., M) bool."""
+    centres = terrain.box_pos[..., :2]
+    radii = jnp.linalg.norm(terrain.box_half[..., :2], axis=-1)
+    return centres, radii, terrain.box_valid
+
+
+def heightmap(terrain: Terrain, x_range, y_range, res: float = 0.005) -> np.ndarray:
+    """Top height of a single (unbatched) terrain on a regular grid, (nx, ny) m, numpy."""
+    xs = np.arange(x_range[0], x_range[1], res) + 0.5 * res
+    ys = np.arange(y_range[0], y_range[1], res) + 0.5 * res
+    pos, half = np.asarray(terrain.box_pos), np.asarray(terrain.box_half)
+    valid = np.asarray(terrain.box_valid)
+    h = np.full((xs.size, ys.size), float(terrain.ground_z))
+    for p, hh, v in zip(pos, half, valid):
+        if not v:
+            continue
+        ix = (xs >= p[0] - hh[0]) & (xs <= p[0] + hh[0])
+        iy = (ys >= p[1] - hh[1]) & (ys <= p[1] + hh[1])
+        h[np.ix_(ix, iy)] = np.maximum(h[np.ix_(ix, iy)], p[2] + hh[2])
+    return h
