@@ -80,7 +80,8 @@ def build_parser(argv) -> argparse.ArgumentParser:
     if i is not None and i < len(argv) and is_path(argv[i]):
         registered = {**registered, argv[i]: experiment(argv[i])}
     for name, entry in registered.items():
-        e = names.add_parser(name, help=f"{entry.paper}: {entry.summary}", description=f"{entry.paper}: {entry.summary}")
+        text = f"{entry.paper}: {entry.summary}"
+        e = names.add_parser(name, help=text, description=text)
         _add_options(e, entry)
         e.set_defaults(entry=entry)
     return p

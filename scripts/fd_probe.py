@@ -5,7 +5,7 @@ One robot, one controller, one solver setting per call; prints the cosine and th
 travel x + 0.3 y + 0.1 yaw of B envs over a `--window` s rollout on flat ground (or before a face across
 the path, `--face X`), with MJX's Newton iterations traced as a scan. About 2-3 min per call on 2 cores.
 
-  python scripts/fd_probe.py --robot yu2019 --ctrl gait                 # open-loop seed-000 gait
+  python scripts/fd_probe.py --robot yu2019 --ctrl gait                 # open-loop Luneckas 2020 gait
   python scripts/fd_probe.py --ctrl cpg-blind --iters 2                  # CPG without feedback, 2 iterations
   python scripts/fd_probe.py --ctrl cpg --iters 4 --omega 5 --tphase 5 --tforce 3   # the test's setting
 

@@ -17,10 +17,11 @@ def _free_compiled_rollouts():
     segfault inside XLA's compiler late in the run; the same test passed alone). A later module that needs
     the same program again loads it from the persistent compilation cache (`hexjax.cache`)."""
     yield
-    import jax
+    import sys
 
-    from hexjax.sim import rollout
-    rollout._compiled.cache_clear()
+    import jax
+    if "hexjax.sim.rollout" in sys.modules:
+        sys.modules["hexjax.sim.rollout"]._compiled.cache_clear()
     jax.clear_caches()
 
 

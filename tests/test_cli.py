@@ -48,7 +48,8 @@ def test_experiment_list_and_per_experiment_flags(capsys):
     names = sorted(experiments())
     assert len(listed) == len(names) >= 10
     for name, line in zip(names, listed):
-        assert line.split()[0] == name and any(p in line for p in ("Luneckas 2020", "Yu 2019", "Zhao 2018", "Chen 2019"))
+        papers = ("Luneckas 2020", "Yu 2019", "Zhao 2018", "Chen 2019")
+        assert line.split()[0] == name and any(p in line for p in papers)
     with pytest.raises(SystemExit):
         main(["experiment", "zhao2018-mjx", "--help"])
     text = capsys.readouterr().out

@@ -2,6 +2,7 @@
 commands exactly, the ground under each leg is a height, contact forces are a stiff penalty. Fast and
 deterministic, so the FSM, the reflexes and the hard/smooth forms can be checked step by step (jitted)."""
 
+import functools
 import math
 
 import jax
@@ -9,7 +10,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from hexjax.control.cpg import MODE_NAMES, TRIPOD_GROUP, CPGController, converter_points, linear_converter
+from hexjax.control.cpg import (MODE_NAMES, TRIPOD_GROUP, CPGController, converter_output, converter_points,
+                               linear_converter)
 from hexjax.control.vdp import locked_state
 from hexjax.sim.model import Obs
 from hexjax.world.presets import get_robot
@@ -34,24 +36,35 @@ def _obs(q, floor, wall_x, wall_top, t):
                tactile_force=jnp.zeros(6), tactile=jnp.zeros(6, bool), time=t)
 
 
-def _walk(ctrl, params, seconds, floor_fn, wall_x=None, wall_top=None):
-    """Run the controller in the stand-in world; returns the stacked states (T, ...)."""
-    n = int(round(seconds / ctrl.dt))
-    wall_x = jnp.full(6, 10.0) if wall_x is None else wall_x
-    wall_top = jnp.full(6, -10.0) if wall_top is None else wall_top
+N_MAX = 4000  # control steps of the longest stand-in walk (80 s): every walk runs this long and is cut
 
+
+@functools.partial(jax.jit, static_argnums=0)
+def _run(ctrl, params, z0, delta, t_on, t_off, wall_x, wall_top):
+    """One compiled program per controller: the floor under each leg is z0, plus delta (6,) between t_on and
+    t_off s; walls as in `_obs`. Returns the stacked states (N_MAX, ...)."""
     def body(s, i):
         t = i * ctrl.dt
-        obs = _obs(s.q_cmd, floor_fn(t), wall_x, wall_top, t)
-        s, _ = ctrl.step(params, s, obs)
+        floor = z0 + jnp.where((t > t_on) & (t < t_off), delta, 0.0)
+        s, _ = ctrl.step(params, s, _obs(s.q_cmd, floor, wall_x, wall_top, t))
         return s, s
 
-    @jax.jit
-    def run(p):
-        s0 = ctrl.init(p, None)
-        return jax.lax.scan(body, s0, jnp.arange(n))[1]
+    return jax.lax.scan(body, ctrl.init(params, None), jnp.arange(N_MAX))[1]
 
-    return run(params)
+
+def _walk(ctrl, params, seconds, z0, delta=0.0, t_on=0.0, t_off=np.inf, wall_x=None, wall_top=None):
+    """The controller in the stand-in world for `seconds`; returns the stacked states (T, ...)."""
+    wall_x = jnp.full(6, 10.0) if wall_x is None else wall_x
+    wall_top = jnp.full(6, -10.0) if wall_top is None else wall_top
+    st = _run(ctrl, params, jnp.float32(z0), jnp.broadcast_to(jnp.asarray(delta, jnp.float32), (6,)),
+              jnp.float32(t_on), jnp.float32(t_off), wall_x, wall_top)
+    n = int(round(seconds / ctrl.dt))
+    return jax.tree_util.tree_map(lambda a: a[:n], st)
+
+
+def _rf(value):
+    """(6,): `value` under RF, 0 elsewhere."""
+    return jnp.zeros(6).at[RF].set(value)
 
 
 def _z_aep(ctrl, p):
@@ -73,7 +86,7 @@ def test_converter_hits_aep_pep_apex_and_stance_midpoint():
         (math.pi, 1.0, 1), (1.5 * math.pi, 1.0, 3), (0.0, 1.0, 0), (0.5 * math.pi, 0.0, 2), (0.0, 0.0, 0)]
     for theta, sw, k in cases:
         z = locked_state(jnp.full(6, theta), w)
-        q = ctrl._converter_output(p, lc, z, jnp.full(6, sw), zero, jnp.zeros((6, 3)), jnp.zeros((6, 3)), zero)
+        q = converter_output(p, lc, z, jnp.full(6, sw), zero, jnp.zeros((6, 3)), jnp.zeros((6, 3)), zero)
         np.testing.assert_allclose(np.asarray(leg_fk(ROBOT, q)), pts[:, k], atol=1e-3)
 
 
@@ -83,7 +96,7 @@ def test_flat_stand_in_world_walks_a_regular_tripod():
     ctrl = CPGController(ROBOT)
     p = ctrl.default_params()
     z0 = _z_aep(ctrl, p)
-    st = _walk(ctrl, p, 20.0, lambda t: jnp.full(6, z0))
+    st = _walk(ctrl, p, 20.0, z0)
     fs = jax.tree_util.tree_map(lambda a: np.asarray(a[-1]), st)
     assert fs.n_elev.sum() == 0 and fs.n_search.sum() == 0
     swing = np.asarray(st.swing) > 0.5
@@ -104,10 +117,7 @@ def test_raised_foothold_sets_the_level_of_stance_and_next_swing():
     p = ctrl.default_params()
     z0 = _z_aep(ctrl, p)
 
-    def floor(t):
-        return jnp.full(6, z0).at[RF].set(jnp.where((t > 3.0) & (t < 30.0), z0 + 0.04, z0))
-
-    st = _walk(ctrl, p, 80.0, floor)
+    st = _walk(ctrl, p, 80.0, z0, _rf(0.04), 3.0, 30.0)
     t = np.arange(st.t.shape[0]) * ctrl.dt
     level = np.asarray(st.level[:, RF])
     first = np.nonzero(np.abs(level - 0.04) < 0.003)[0]
@@ -141,10 +151,7 @@ def test_searching_reflex_depths_and_fsm(depth, found):
     p = ctrl.default_params()
     z0 = _z_aep(ctrl, p)
 
-    def floor(t):
-        return jnp.full(6, z0).at[RF].set(jnp.where(t > 3.0, z0 - depth, z0))
-
-    st = _walk(ctrl, p, 60.0, floor)
+    st = _walk(ctrl, p, 60.0, z0, _rf(-depth), 3.0)
     fs = jax.tree_util.tree_map(lambda a: np.asarray(a[-1]), st)
     mode = np.asarray(jax.vmap(CPGController.mode)(st))
     searching = mode[:, RF] == MODE_NAMES.index("search")
@@ -178,7 +185,7 @@ def test_elevator_reflex_reverses_leader_and_raises_clearance():
     z0 = _z_aep(ctrl, p)
     wall_x = jnp.full(6, 10.0).at[RF].set(0.5 * float(p.step_length) - 0.01)
     wall_top = jnp.full(6, -10.0).at[RF].set(z0 + 0.04)
-    st = _walk(ctrl, p, 12.0, lambda t: jnp.full(6, z0), wall_x, wall_top)
+    st = _walk(ctrl, p, 12.0, z0, wall_x=wall_x, wall_top=wall_top)
     n_elev = np.asarray(st.n_elev[:, RF])
     k = int(np.nonzero(np.diff(n_elev) > 0)[0][0]) + 1  # first step with the reflex fired
     assert abs(float(st.z[k, RF, 0, 1]) - (-1.0)) < 0.1  # y1 set to -1 (then one RK4 step)
@@ -187,7 +194,7 @@ def test_elevator_reflex_reverses_leader_and_raises_clearance():
     assert z_foot.max() - z0 > 0.075  # regenerated clearance ~80 mm
     assert np.asarray(st.elev[k:, RF]).max() == pytest.approx(1.0)
     off = CPGController(ROBOT, elevator=False)
-    st_off = _walk(off, p, 12.0, lambda t: jnp.full(6, z0), wall_x, wall_top)
+    st_off = _walk(off, p, 12.0, z0, wall_x=wall_x, wall_top=wall_top)
     assert np.asarray(st_off.n_elev).sum() == 0
     assert np.asarray(leg_fk(ROBOT, st_off.q_cmd[:, RF]))[:, 2].max() - z0 < 0.045
 
@@ -199,20 +206,17 @@ def test_smooth_form_tends_to_hard_form():
     1e-5 down they were identical."""
     z0 = -(ROBOT.hip_height - ROBOT.foot_radius) + 0.002
 
-    def floor(t):
-        return jnp.full(6, z0).at[RF].set(jnp.where(t > 3.0, z0 - 0.018, z0))
-
     hard = CPGController(ROBOT)
     p = hard.default_params()
     wall_x = jnp.full(6, 10.0).at[1].set(0.5 * float(p.step_length) - 0.01)
     wall_top = jnp.full(6, -10.0).at[1].set(z0 + 0.04)
-    q_hard = np.asarray(_walk(hard, p, 25.0, floor, wall_x, wall_top).q_cmd)
+    q_hard = np.asarray(_walk(hard, p, 25.0, z0, _rf(-0.018), 3.0, wall_x=wall_x, wall_top=wall_top).q_cmd)
     smooth = CPGController(ROBOT, smooth=True)
     errs = []
     for scale in (1.0, 1e-2, 1e-4, 1e-6):
         ps = p.replace(temp_force=p.temp_force * scale, temp_phase=p.temp_phase * scale,
                        temp_height=p.temp_height * scale)
-        q_s = np.asarray(_walk(smooth, ps, 25.0, floor, wall_x, wall_top).q_cmd)
+        q_s = np.asarray(_walk(smooth, ps, 25.0, z0, _rf(-0.018), 3.0, wall_x=wall_x, wall_top=wall_top).q_cmd)
         errs.append(np.abs(q_s - q_hard).max())
     print("smooth-hard max |dq| per temperature scale 1, 1e-2, 1e-4, 1e-6:", errs)
     assert errs[-1] < 0.02, errs  # rad

@@ -38,7 +38,8 @@ def test_gait_leg_orders():
     assert first == {"LM", "RF", "RH"}
     assert GAITS["wave"].phases == (0, 1, 2, 3, 4, 5)
     # paper's speeds and steps per metre (Sect. 3.3)
-    assert tri.cycle_advance * 13 == pytest.approx(1.0) and tri.cycle_advance / (tri.swing_time * 2) == pytest.approx(0.036)
+    assert tri.cycle_advance * 13 == pytest.approx(1.0)
+    assert tri.cycle_advance / (tri.swing_time * 2) == pytest.approx(0.036)
     wave = GAITS["wave"]
     assert wave.cycle_advance / (wave.swing_time * 6) == pytest.approx(0.013)
 
@@ -59,12 +60,23 @@ def test_controller_targets_track_trajectory_through_ik():
     assert lifted.sum() <= 1
 
 
-def test_grad_reaches_gait_params():
+def test_grad_of_gait_params_matches_finite_differences():
+    """jax.grad of a foot-target function reaches every swept gait param with the sign and size of central
+    differences (the trajectory is smooth in them away from the swing boundaries)."""
     spec = luneckas2020()
     c = GaitController(spec)
     p = c.default_params()
-    g = jax.grad(lambda prm: c.foot_targets(prm, 1.7)[0, 0] + c.foot_targets(prm, 0.3)[:, 2].sum())(p)
-    assert abs(float(g.step_length)) > 0 and abs(float(g.step_height)) > 0
+    f = jax.jit(lambda prm: c.foot_targets(prm, 1.7)[0, 0] + c.foot_targets(prm, 0.3)[:, 2].sum()
+                + c.foot_targets(prm, 2.6)[3, 1])
+    g = jax.grad(f)(p)
+    eps = 1e-4
+    for name in ("step_length", "step_height", "swing_time", "direction"):
+        v = float(getattr(p, name))
+        at = lambda x: float(f(p.replace(**{name: jnp.asarray(x)})))
+        fd = (at(v + eps) - at(v - eps)) / (2 * eps)
+        ad = float(getattr(g, name))
+        assert abs(fd) > 1e-3, (name, fd)  # the function does depend on it here
+        assert np.sign(ad) == np.sign(fd) and abs(ad - fd) <= 2e-2 * abs(fd), (name, ad, fd)
 
 
 def test_bad_gait_and_params():

@@ -1,5 +1,6 @@
-"""Issue 6, part 1: the Zhao 2018 (seed 004) avoidance planner: Eqs. 1, 3, 5, 6; experiment 1 against
-Table 2; batched random fields with a free lane by construction; degenerate inputs."""
+"""The Zhao 2018 avoidance planner (Eqs. 1, 3, 5, 6; experiment 1 against Table 2; batched random fields with
+a free lane by construction; degenerate inputs), Chen 2019's incenters, torso target and splines, Zhao 2018's
+motion planner and Chen 2019's swing optimisation."""
 
 import jax
 import jax.numpy as jnp
@@ -33,13 +34,29 @@ def test_clearance_is_eq1():
     assert np.all(np.isinf(d[:, 1]))  # an invalid obstacle never counts
 
 
-def test_capacity_reading_reproduces_table2_cycle_lengths():
-    """The |w| line read from Table 2 gives its cycle lengths (0.75 m x |w|) at the angles it used."""
+def test_capacity_line_properties():
+    """|w| of Fig. 6 (not in the text), as hexjax reads it: the most at the forward direction (1), falling
+    linearly and symmetrically with the angle off forward, floored at 0.1, periodic in 2 pi. These hold
+    whatever numbers were read off Table 2."""
+    a = np.radians(np.arange(-180.0, 181.0, 5.0))
+    w = np.asarray(capacity_line(a + np.pi / 2))
+    assert w.max() == pytest.approx(1.0) and a[np.argmax(w)] == 0.0
+    np.testing.assert_allclose(w, w[::-1], atol=1e-6)  # symmetric about forward
+    off = np.abs(np.degrees(a))
+    assert np.all(np.diff(w[off <= 90][np.argsort(off[off <= 90])]) <= 1e-6)  # falls away from forward
+    assert w.min() == pytest.approx(0.1) and np.all(w >= 0.1 - 1e-7)
+    np.testing.assert_allclose(np.asarray(capacity_line(a + np.pi / 2 + 2 * np.pi)), w, atol=1e-5)
+    assert len(fan()) == 36 and np.degrees(fan())[-1] == pytest.approx(175.0)
+
+
+def test_capacity_reading_is_consistent_with_table2():
+    """A consistency check of the reading, not evidence for it: the capacity line's slope (1/150 per deg)
+    and the 0.75 m cycle were read off these very Table 2 lengths, so this only guards the constants
+    against a typo. What the planner does with them is tested apart (experiment 1 below)."""
     lengths = 0.75 * np.asarray(capacity_line(np.radians([90.0, 75.0, 105.0, 60.0, 135.0, 85.5])))
     steps = np.linalg.norm(np.diff(np.vstack([[0, 0], TABLE2]), axis=0), axis=1)
     # cycles 6, 4, 2, 5, 1, 3 of Table 2 walked at 90, 75, 105, 60, 135 and the target direction (85.5 deg)
     assert lengths == pytest.approx(steps[[5, 3, 1, 4, 0, 2]], abs=2e-3)
-    assert len(fan()) == 36 and np.degrees(fan())[-1] == pytest.approx(175.0)
 
 
 def test_scores_prefer_the_target_and_avoid_obstacles():

@@ -4,6 +4,7 @@ last-error baseline on held-out sequences, and saves/loads exactly."""
 import numpy as np
 import pytest
 
+from hexjax.experiments.luneckas2020 import dataset as ds
 from hexjax.experiments.luneckas2020 import predictor as pr
 
 
@@ -28,7 +29,7 @@ def _synthetic(n_seq=96, K=20, seed=0):
 
 def test_lstm_learns_beats_baseline_and_round_trips(tmp_path):
     data = _synthetic()
-    held = pr.split_by_terrain(data, 0.25, seed=0)
+    held = ds.split_by_terrain(data, 0.25, seed=0)
     assert 0 < held.sum() < len(held)
     cfg = pr.TrainConfig(epochs=40, seed=0)
     params, norm, hist = pr.train_predictor(data["X"][~held], data["Y"][~held], cfg, progress=False)
@@ -47,8 +48,8 @@ def test_lstm_learns_beats_baseline_and_round_trips(tmp_path):
                                atol=1e-6)
     # dataset file round trip
     dpath = tmp_path / "d.npz"
-    pr.save_dataset(str(dpath), data, {"source": "test"})
-    back = pr.load_dataset(str(dpath))
+    ds.save_dataset(str(dpath), data, {"source": "test"})
+    back = ds.load_dataset(str(dpath))
     np.testing.assert_array_equal(back["X"], data["X"])
     assert list(back["category"][:2]) == ["low-small", "low-small"]
 
@@ -61,4 +62,4 @@ def test_bad_config_and_data():
     with pytest.raises(ValueError, match="finite"):
         pr.train_predictor(np.full((2, 3, 8), np.nan), np.zeros((2, 2)), pr.TrainConfig(epochs=1), progress=False)
     with pytest.raises(ValueError, match="held_out_frac"):
-        pr.split_by_terrain(_synthetic(8), 1.5)
+        ds.split_by_terrain(_synthetic(8), 1.5)

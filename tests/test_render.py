@@ -62,8 +62,22 @@ def test_render_rejects_bad_input(tmp_path):
 
 
 def test_render_command_writes_a_video_and_a_still(tmp_path):
+    """The video holds one frame per `every` control steps of the walk; the still is its middle frame and
+    shows the robot (its blue torso and dark feet in the middle of the picture, over the grey floor)."""
+    import imageio.v2 as imageio
+
     from hexjax.cli import main
     out, still = tmp_path / "walk.mp4", tmp_path / "still.png"
     assert main(["render", "--terrain", "flat", "--controller", "gait", "--seconds", "0.4", "--width", "96",
                  "--height", "72", "--out", str(out), "--still", str(still)]) == 0
-    assert out.stat().st_size > 1000 and still.stat().st_size > 500
+    frames = np.stack(imageio.mimread(str(out)))
+    assert frames.shape == (10, 72, 96, 3)  # 0.4 s at 20 ms per control step, every 2nd step
+    img = imageio.imread(str(still))[..., :3].astype(int)
+    assert img.shape == (72, 96, 3)
+    assert np.abs(frames[5].astype(int) - img).mean() < 12  # the still is the middle frame (MP4 is lossy)
+    centre = img[18:54, 24:72]
+    torso = (centre[..., 2] > centre[..., 0] + 30) & (centre[..., 2] > centre[..., 1] + 10)  # rgba 0.3 0.4 0.7
+    dark = centre.sum(-1) < 150  # feet and legs' shadows of 0.2 0.2 0.2
+    assert torso.sum() > 20 and dark.sum() > 5, (torso.sum(), dark.sum())
+    floor = img[-6:, :]  # the checker floor in front of the robot: light grey
+    assert floor.mean() > 120 and np.abs(floor[..., 0] - floor[..., 2]).mean() < 25

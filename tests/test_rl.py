@@ -37,9 +37,12 @@ def test_env_bad_input():
 
 
 def test_brax_ppo_trains_end_to_end_and_its_reward_improves():
+    """40k env steps of Brax PPO: the deterministic evaluations rise at each of the 3 evaluations, by more
+    than 5 in all (seeded; measured 1.5 -> 4.6 -> 9.2, where a policy that learns nothing stays near its
+    start)."""
     env = HexapodGoalEnv(terrain="flat")
     history, make_policy, params = train_ppo(env, num_timesteps=40_000, num_envs=16, episode_length=50,
                                              num_evals=3, seed=0)
     rewards = [r for _, r in history]
     assert len(rewards) == 3 and all(np.isfinite(rewards))
-    assert rewards[-1] > rewards[0]
+    assert rewards[0] < rewards[1] < rewards[2] and rewards[2] - rewards[0] > 5.0, rewards

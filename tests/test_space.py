@@ -66,7 +66,7 @@ def test_bad_configs_raise_clear_errors():
 
 def test_tune_config_file_and_its_errors(tmp_path):
     from hexjax.tune.config import load_tune_config
-    cfg = load_tune_config("configs/tune/tactile_tripod.yaml")
+    cfg = load_tune_config("tactile_tripod")
     assert cfg.space().names == ("overcome_height", "overcome_length", "step_height", "step_length",
                                  "tactile_threshold")
     assert cfg.optimizer["learning_rate"] > 0
@@ -78,27 +78,28 @@ def test_tune_config_file_and_its_errors(tmp_path):
                        ({"objective": {"dx": 0.0}}, "nothing to minimise"),
                        ({"steps": 0}, "tune.steps=0"),
                        ({"terrain": "moon"}, "terrain='moon'"),
-                       ({"colour": "red"}, "unknown keys \\['colour'\\]")):
+                       ({"colour": "red"}, "tune.colour: unknown key")):
         with pytest.raises(ValueError, match=match):
-            load_tune_config("configs/tune/tactile_tripod.yaml", overrides=bad)
-    with pytest.raises(ValueError, match="not found"):
+            load_tune_config("tactile_tripod", overrides=bad)
+    with pytest.raises(ValueError, match="nope.yaml: no such file"):
         load_tune_config(str(tmp_path / "nope.yaml"))
+    with pytest.raises(ValueError, match="tune config 'tactile_tripd' unknown \\(did you mean 'tactile_tripod'"):
+        load_tune_config("tactile_tripd")
 
 
 def test_every_shipped_tune_config_builds():
     """Each configs/tune/*.yaml validates, its start lies inside its bounds, and its physics is the one it
     asks for (the CPG config's 4 solver iterations reach both the training and the held-out rollouts)."""
-    import glob
-
     from hexjax.tune.config import load_tune_config
-    from hexjax.tune.grad import Problem
-    paths = sorted(glob.glob("configs/tune/*.yaml"))
+    from hexjax.tune.objective import Problem
+    from hexjax.world.files import preset_names
+    paths = preset_names("tune")
     assert len(paths) >= 2
     for path in paths:
         cfg = load_tune_config(path)
         problem = Problem.build(cfg)
         problem.space.init(problem.params0)
         assert problem.physics().iterations == (cfg.solver_iterations or 2), path
-    cpg = Problem.build(load_tune_config("configs/tune/cpg_tripod.yaml"))
+    cpg = Problem.build(load_tune_config("cpg_tripod"))
     assert cpg.robot.name == "yu2019" and cpg.physics().iterations == 4
     assert float(cpg.params0.temp_force) == 1.0  # the controller's own temperatures when the config sets none

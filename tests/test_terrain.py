@@ -3,7 +3,8 @@ import numpy as np
 import pytest
 
 from hexjax.world.presets import get_terrain
-from hexjax.world.terrain import LUNECKAS2020_CATEGORIES, PRESETS, heightmap, obstacle_circles, sample
+from hexjax.world.files import preset_names
+from hexjax.world.terrain import LUNECKAS2020_CATEGORIES, heightmap, obstacle_circles, sample
 
 B = 64
 
@@ -68,17 +69,47 @@ def test_step_ditch_waves_rough():
 
 
 def test_obstacle_circles_cover_boxes():
+    """Zhao 2018 Eq. 1 envelopes each obstacle by a circle: every corner of every valid box footprint lies
+    inside (or on) its circle, and the circle is no larger than that (its radius is the half diagonal)."""
     t = sample(get_terrain("high-large"), jax.random.PRNGKey(0), 4)
-    c, r, v = obstacle_circles(t)
+    c, r, v = (np.asarray(x) for x in obstacle_circles(t))
     assert c.shape == t.box_pos.shape[:-1] + (2,) and r.shape == v.shape
-    half = np.asarray(t.box_half)
-    assert np.all(np.asarray(r) >= np.abs(half[..., :2]).max(-1))
+    pos, half = np.asarray(t.box_pos)[..., :2], np.asarray(t.box_half)[..., :2]
+    for sx in (-1, 1):
+        for sy in (-1, 1):
+            corner = pos + half * np.array([sx, sy])
+            d = np.linalg.norm(corner - c, axis=-1)
+            assert np.all(d[v] <= r[v] * (1 + 1e-6)), (d - r)[v].max()
+    np.testing.assert_allclose(r[v], np.linalg.norm(half[v], axis=-1), rtol=1e-6)  # tight: a corner touches
 
 
-def test_all_presets_sample():
-    for name in PRESETS:
-        t = sample(get_terrain(name), jax.random.PRNGKey(1), 2)
-        assert np.all(np.isfinite(np.asarray(t.box_pos)))
+def test_all_presets_sample_inside_their_spec():
+    """Every shipped terrain preset samples terrains of its static size whose valid boxes have positive
+    extents, stand on or in the ground (no box floats or is sunk below the ditch bottom), top out within the
+    preset's height range (obstacles, steps, waves) and lie within the corridor's length (step and ditch slabs
+    reach past it by design)."""
+    for name in preset_names("terrains"):
+        spec = get_terrain(name)
+        t = sample(spec, jax.random.PRNGKey(1), 3)
+        pos, half, valid = (np.asarray(x) for x in (t.box_pos, t.box_half, t.box_valid))
+        gz = np.asarray(t.ground_z)
+        assert pos.shape == (3, spec.max_boxes, 3) and np.all(np.isfinite(pos)) and np.all(np.isfinite(gz)), name
+        if spec.kind == "flat":
+            assert not valid.any(), name
+            continue
+        assert valid.any(1).all(), name
+        assert np.all(half[valid] > 0), name
+        bottom, top = (pos - half)[..., 2], (pos + half)[..., 2]
+        np.testing.assert_allclose(bottom[valid], np.broadcast_to(np.where(spec.kind == "ditch", gz, 0.0)[:, None],
+                                                                  bottom.shape)[valid], atol=1e-6, err_msg=name)
+        lo, hi = spec.height_range
+        if spec.kind in ("obstacles", "step"):
+            assert np.all((top[valid] >= lo - 1e-6) & (top[valid] <= hi + 1e-6)), name
+        if spec.kind == "waves":
+            assert np.all(top.max(1) >= lo - 1e-6) and np.all(top.max(1) <= hi + 1e-6), name
+        if spec.kind in ("obstacles", "waves", "rough"):
+            x = pos[..., 0][valid]
+            assert x.min() >= spec.start_x - 0.02 and x.max() <= spec.start_x + spec.length + 0.02, name
 
 
 @pytest.mark.parametrize("kwargs,match", [

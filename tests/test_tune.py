@@ -112,7 +112,7 @@ def test_objective_terms_in_the_start_frame():
 
 
 def _small_config(**kw):
-    base = dict(controller="tactile", gait="tripod", terrain="low-small", distance=0.2, train_batch=2,
+    base = dict(controller="tactile", gait="tripod", terrain="low-small", distance=0.08, train_batch=2,
                 held_out_batch=2, validation_batch=2, window=0.2, steps=2, eval_every=1, seed=3,
                 params={"step_length": {"min": 0.01, "max": 0.08}, "overcome_height": {"min": 0.02, "max": 0.12}},
                 optimizer={"name": "adam", "learning_rate": 0.2})
@@ -162,11 +162,17 @@ def test_cli_tune_rejects_bad_configs(capsys):
         assert msg in capsys.readouterr().err
 
 
-def test_es_baseline_runs_on_the_same_objective_and_is_deterministic(tmp_path):
-    cfg = _small_config(es_population=2)
-    a = tune_es(cfg, str(tmp_path / "a"), rollouts=8, progress=False)  # 2 generations of 2 x 2 rollouts
-    b = tune_es(cfg, str(tmp_path / "b"), rollouts=8, progress=False)
+def test_es_baseline_improves_and_is_deterministic(tmp_path):
+    """CMA-ES on an objective with a clear way down: the goal error plus 0.05 per joule, the step height
+    among the tuned params (a lower swing costs less energy). In 3 generations of 4 x 2 rollouts the mean
+    moves down the energy slope and the held-out objective of the returned iterate falls by more than 30 %
+    (measured 57 %: 0.099 -> 0.043 m); a rerun is identical."""
+    cfg = _small_config(es_population=4, es_sigma=1.0, objective={"dx": 1.0, "dy": 1.0, "energy": 0.05},
+                        params={"step_height": {"min": 0.005, "max": 0.1}, "step_length": {"min": 0.01, "max": 0.08}})
+    a = tune_es(cfg, str(tmp_path / "a"), rollouts=24, progress=False)
+    b = tune_es(cfg, str(tmp_path / "b"), rollouts=24, progress=False)
     assert _numbers(a["log"]) == _numbers(b["log"])
-    assert [e["rollouts"] for e in a["log"]] == [0, 4, 8]
-    assert a["last"]["params"] != a["start"]["params"]
-    assert np.isfinite(a["final"]["held_out"]["objective"])
+    assert [e["rollouts"] for e in a["log"]] == [0, 8, 16, 24]
+    assert a["improvement_pct"] > 30.0, a["improvement_pct"]
+    assert a["final"]["held_out"]["objective"] < a["start"]["held_out"]["objective"]
+    assert a["final"]["params"]["step_height"] < 0.8 * a["start"]["params"]["step_height"]

@@ -12,9 +12,11 @@ from hexjax.control.vdp import NetworkParams, integrate, locked_state, network_r
 DT = 0.01
 
 
+_integrate = jax.jit(integrate, static_argnums=(2, 3))  # one program per (shape, length), shared by the tests
+
+
 def _run(z0, net, seconds):
-    n = int(round(seconds / DT))
-    return jax.jit(lambda z: integrate(z, net, DT, n))(z0)
+    return _integrate(z0, net, DT, int(round(seconds / DT)))
 
 
 def _lock_errors(zs, net):
@@ -125,3 +127,13 @@ def test_locked_state_is_a_fixed_relation_of_eq5():
     np.testing.assert_allclose(np.asarray(z[:, 1, 1]), np.asarray(drive), atol=1e-5)
     np.testing.assert_allclose(np.asarray(z[:, 1, 0]), np.asarray(1 - 2 * z[:, 0, 0] ** 2), atol=1e-5)
     assert np.all(np.isfinite(np.asarray(d)))
+    # the coupling terms k12 (drive - y2), k13 (drive - y3), k23 (y2 - y3), k32 (y3 - y2) are zero there:
+    # the right-hand side is the same with strong coupling as with none ...
+    for k in (jnp.full(4, 5.0), jnp.array([0.3, 2.0, 0.0, 7.0])):
+        np.testing.assert_allclose(np.asarray(network_rhs(z, net.omega, net.eps, net.b, k)),
+                                   np.asarray(network_rhs(z, net.omega, net.eps, net.b, jnp.zeros(4))), atol=1e-4)
+    # ... and off the locked cycle the coupling does act (so the check above can fail)
+    off = z.at[:, 1, 1].add(0.3)
+    gap = network_rhs(off, net.omega, net.eps, net.b, jnp.full(4, 5.0)) - network_rhs(off, net.omega, net.eps, net.b,
+                                                                                       jnp.zeros(4))
+    assert np.abs(np.asarray(gap)[:, 1:, 1]).min() > 1.0

@@ -1,4 +1,4 @@
-"""Van der Pol neurons and the per-leg leader-follower network of Yu, Gao, Deng 2019 (seed 003).
+"""Van der Pol neurons and the per-leg leader-follower network of Yu, Gao, Deng 2019.
 
 Each leg has three coupled neurons z_i = (x_i, y_i): the leader z_1 drives the coxa (alpha) joint,
 the followers z_2, z_3 the femur (beta) and tibia (gamma) joints. Arrays are shaped (..., 3, 2) with

@@ -70,8 +70,8 @@ def bench(robot: str = "luneckas2020", batches: Sequence[int] = (16, 64, 256), s
     Each timed call is the whole rollout (model setup, controller, sensors, physics, summary); its first call
     (compile, and for 'c' the per-env model copies) is reported apart as compile_s / first_call_s.
 
-    controller: a comma list of 'gait' (seed-000 open-loop gait), 'cpg' (Yu 2019 CPG with reflexes and FSM),
-    'tactile' (seed-000 gait with the tactile overcoming switch), 'avoid' (the seed-000 gait steered by the
+    controller: a comma list of 'gait' (the Luneckas 2020 open-loop gait), 'cpg' (Yu 2019 CPG with reflexes and FSM),
+    'tactile' (the Luneckas 2020 gait with the tactile overcoming switch), 'avoid' (the Luneckas 2020 gait steered by the
     Zhao 2018 planner, scoring its 37 candidates every control step); 'both' means 'gait,cpg'. With 'gait' in the
     list every other controller's row gets `overhead_vs_gait` = gait rate / its rate - 1."""
     if not isinstance(repeats, int) or repeats < 0:
@@ -113,7 +113,7 @@ def bench(robot: str = "luneckas2020", batches: Sequence[int] = (16, 64, 256), s
         phys = physics_for(tspec.kind, physics)
         kw = dict(physics=phys, config=cfg, backend=be, nthread=nthread or None, mesh=mesh)
         out, st = rollout(spec, terr, ctrl, params, sim_seconds, jax.random.PRNGKey(1), stats=True, **kw)
-        first, compile_s = st.wall_s, st.compile_s
+        first, compile_s, compiled = st.wall_s, st.compile_s, st.compiled
         best = first if repeats == 0 else np.inf  # repeats=0: the first call (with its compile) is the timing
         for r in range(repeats):
             t0 = time.perf_counter()
@@ -121,7 +121,8 @@ def bench(robot: str = "luneckas2020", batches: Sequence[int] = (16, 64, 256), s
             jax.block_until_ready(out.end_pose)
             best = min(best, time.perf_counter() - t0)
         rows.append(dict(terrain=tname, batch=b, controller=cname, backend=be, pairs=sim_model(spec, phys).n_pairs,
-                         compile_s=round(compile_s, 2), first_call_s=round(first, 2), repeats=repeats,
+                         compile_s=round(compile_s, 2), compiled=compiled, first_call_s=round(first, 2),
+                         repeats=repeats,
                          run_s=round(best, 4), env_steps_per_s=round(b * n_phys / best, 1),
                          nan=int(np.asarray(out.nan).sum()), fell=int(np.asarray(out.fell).sum()),
                          tactile_steps=int(np.asarray(out.tactile_steps).sum()),

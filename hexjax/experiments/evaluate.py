@@ -83,6 +83,7 @@ def run(o, entry) -> Dict:
 
 def report(res: Dict) -> str:
     c = res["config"]
+    compile_s = sum(s["compile_s"] for s in res["categories"].values())
     return (f"\n{c['robot']} {c['gait']} gait, {c['distance_m']:g} m ({c['gait_cycles']} cycles, "
             f"{c['duration_s']:.1f} s), {c['batch']} envs per category, seed {c['seed']}, no tactile method\n"
-            + format_table(res))
+            + format_table(res) + f"\ncompile {compile_s:.1f} s (one program for every category)")

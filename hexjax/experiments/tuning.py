@@ -36,7 +36,8 @@ def _row(r) -> Dict:
     last = r["log"][-1]
     return {"method": r["method"], "rollouts": last["rollouts"], "wall_s": last["wall_s"],
             "held_out_start": r["start"]["held_out"], "held_out_final": r["final"]["held_out"],
-            "selected_step": r["final"]["step"], "selected_by": r["selected_by"], "held_out_last": r["last"]["held_out"],
+            "selected_step": r["final"]["step"], "selected_by": r["selected_by"],
+            "held_out_last": r["last"]["held_out"],
             "improvement_pct": r["improvement_pct"], "params_start": r["start"]["params"],
             "params_final": r["final"]["params"],
             "curve": [(e["rollouts"], e["held_out"]["objective"]) for e in r["log"] if "held_out" in e]}
@@ -73,8 +74,8 @@ def report(res: Dict) -> str:
         s, f = r["held_out_start"], r["held_out_final"]
         pct = r["improvement_pct"]
         verdict = "better" if pct > 0 else ("worse" if pct < 0 else "unchanged")
-        lines.append(f"{r['method']}: held-out objective {s['objective']:.4f} -> {f['objective']:.4f} m ({-pct:+.1f} %, "
-                     f"{verdict}), goal error {s['goal_error_cm']:.1f} -> {f['goal_error_cm']:.1f} cm (iterate "
+        lines.append(f"{r['method']}: held-out objective {s['objective']:.4f} -> {f['objective']:.4f} m "
+                     f"({-pct:+.1f} %, {verdict}), goal error {s['goal_error_cm']:.1f} -> {f['goal_error_cm']:.1f} cm (iterate "
                      f"{r['selected_step']}, {r['selected_by']}), {r['rollouts']} rollouts, {r['wall_s']:.0f} s")
         for k, v in r["params_final"].items():
             lines.append(f"  {k}: {r['params_start'][k]} -> {v}")

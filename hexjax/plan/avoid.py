@@ -1,4 +1,4 @@
-"""Obstacle avoidance by direction selection: Zhao, Chai, Gao, Qi 2018 (seed 004), Sect. 3.
+"""Obstacle avoidance by direction selection: Zhao, Chai, Gao, Qi 2018, Sect. 3.
 
 The robot and the obstacles are circles (Eq. 1). Every plan cycle the planner scores each candidate
 walking direction u_i (a fixed fan, plus the direction to the target, Eq. 2) by

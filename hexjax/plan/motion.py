@@ -1,4 +1,4 @@
-"""Motion generation of Zhao 2018 (seed 004), Sect. 4: tripod sequence, body motion planner (Eqs. 7-12),
+"""Motion generation of Zhao 2018, Sect. 4: tripod sequence, body motion planner (Eqs. 7-12),
 foothold planner (Eqs. 13-18) and the semi-ellipse swing, for any hexjax `RobotSpec` (the closed loop
 drives the MJX hexapod, not Octopus-III).
 

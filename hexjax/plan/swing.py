@@ -1,4 +1,4 @@
-"""Swing planning as an optimisation (Chen 2019, seed 002, Sect. 2.3), solved in JAX and batched.
+"""Swing planning as an optimisation (Chen 2019, Sect. 2.3), solved in JAX and batched.
 
 The paper optimises each swing leg as a three-axis manipulator with terrain-clearance, initial/final and
 physical-limit constraints, by a Gauss pseudospectral method, with an objective from animal locomotion

@@ -119,7 +119,8 @@ class HexapodGoalEnv(Env):
         """(model, data, obs) of the episode at data d; the robot's contacts are explicit <pair>s, which carry
         their own friction, scaled by the episode's."""
         base = self.sm.mjx_model
-        return env_view(self.sm, self.sensors, hs.terrain, d, base=base.replace(pair_friction=base.pair_friction * hs.friction))
+        base = base.replace(pair_friction=base.pair_friction * hs.friction)
+        return env_view(self.sm, self.sensors, hs.terrain, d, base=base)
 
     def reset(self, rng: jax.Array) -> State:
         k_t, k_yaw, k_goal, k_f = jax.random.split(rng, 4)

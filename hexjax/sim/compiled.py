@@ -1,26 +1,43 @@
-"""Ahead-of-time compiled rollouts: one executable per input signature, with the seconds its compile took.
+"""Ahead-of-time compiled rollouts: one executable per input signature, with the seconds its compile took,
+kept on disk so that a later process neither traces nor lowers it again.
 
-Compiling a rollout costs 20-50 s on 2 CPU cores and 50-185 s on a GPU. JAX's persistent compilation cache
-(`hexjax.cache`) keeps XLA's executables on disk, so a second process skips XLA; `Compiled` records how long
-each signature's first call spent tracing, lowering and compiling (or loading), which is the figure hexjax
-reports as compile time.
+Compiling a rollout costs 20-50 s on 2 CPU cores and 50-185 s on a GPU; JAX's persistent compilation cache
+(`hexjax.cache`) skips XLA's part in a later process, but tracing and lowering the MJX step still take
+~7-10 s on 2 cores. So `Compiled` also keeps the traced program (`Compiled` below) under `<cache>/programs/`,
+named by a hash of everything that shapes it: the static settings (robot, physics, sensors, controller,
+rollout config, step count), the input signature (shapes, dtypes, shardings), the source of hexjax and of
+the controller's module, the versions of jax, jaxlib, mujoco and mujoco-mjx, the XLA flags and the devices.
+A file that does not load is compiled afresh and replaced.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
+import hashlib
+import inspect
+import os
+import pickle
+import re
+import sys
 import time
+from importlib import metadata
+from pathlib import Path
+from typing import Optional
 
 import jax
 import numpy as np
 
+from hexjax import cache
+
 
 @dataclasses.dataclass(frozen=True)
 class CompileStats:
-    """compile_s: seconds of the call spent tracing, lowering and compiling (or loading from the cache);
-    0.0 when this process had compiled the signature already."""
+    """compile_s: seconds of the call spent tracing, lowering and compiling, or loading a kept executable
+    (0.0 when this process had it already); source: 'process', 'disk' or 'compiled'."""
 
     compile_s: float = 0.0
+    source: str = "process"
 
 
 def signature(args):
@@ -30,24 +47,117 @@ def signature(args):
                        for x in leaves)
 
 
+@functools.lru_cache(maxsize=1)
+def _environment() -> str:
+    """The code, library versions, XLA flags and devices an executable depends on."""
+    h = hashlib.sha256()
+    root = Path(__file__).resolve().parents[1]
+    for p in sorted(root.rglob("*.py")):
+        h.update(str(p.relative_to(root)).encode())
+        h.update(p.read_bytes())
+    versions = []
+    for dist in ("jax", "jaxlib", "mujoco", "mujoco-mjx"):
+        try:
+            versions.append(f"{dist}={metadata.version(dist)}")
+        except metadata.PackageNotFoundError:
+            versions.append(f"{dist}=none")
+    devices = [f"{d.platform}:{getattr(d, 'device_kind', '')}" for d in jax.devices()]
+    return "|".join([h.hexdigest(), *versions, sys.version.split()[0], os.environ.get("XLA_FLAGS", ""),
+                     jax.default_backend(), *devices])
+
+
+def _source_of(obj) -> str:
+    """The source file of `obj`'s class when it lies outside hexjax (a user's controller): its text."""
+    try:
+        path = inspect.getsourcefile(type(obj))
+    except TypeError:
+        return ""
+    if not path or Path(path).resolve().is_relative_to(Path(__file__).resolve().parents[1]):
+        return ""
+    return Path(path).read_text()
+
+
 class Compiled:
     """A jitted function compiled ahead of time per input signature. `call(*args)` returns (outputs,
-    CompileStats); calling the object returns the outputs alone."""
+    CompileStats); calling the object returns the outputs alone. `static`: the hashable settings the
+    function was made from (their repr names the kept programs; None keeps none: pass None for a function
+    that cannot be exported, so that it is not traced twice).
 
-    def __init__(self, jitted):
+    A kept program is the function exported (`jax.export`) over its flattened arguments, with the tree of its
+    outputs: loading it skips tracing and lowering, and its XLA compile is a hit in JAX's persistent cache.
+    (A serialised XLA executable would skip even that, but on the CPU one that calls LAPACK, as MJX's solver
+    does, crashes when loaded in another process.) Programs that do not export (host callbacks, MuJoCo Warp's
+    kernels, several devices) are compiled as before."""
+
+    def __init__(self, jitted, static=None):
         self.jitted = jitted
+        self.static = static
         self.executables = {}
+
+    def _path(self, sig) -> Optional[Path]:
+        d = cache.cache_dir()
+        if self.static is None or d is None:
+            return None
+        # object addresses in the tree's repr (MJX wraps the model's static arrays) differ between processes;
+        # those arrays follow from the static settings, which are in the key
+        sig_text = re.sub(r" at 0x[0-9a-f]+", "", repr(sig))
+        key = "\n".join([repr(self.static), sig_text, _environment(),
+                         *(_source_of(x) for x in self.static if not isinstance(x, (int, str, bool)))])
+        return d / "programs" / (hashlib.sha256(key.encode()).hexdigest()[:32] + ".bin")
+
+    @staticmethod
+    def _flat_executable(exported, out_tree, leaves):
+        exe = jax.jit(exported.call).lower(*leaves).compile()
+        return lambda *args: jax.tree_util.tree_unflatten(out_tree, exe(*jax.tree_util.tree_leaves(args)))
+
+    def _load(self, path: Path, leaves):
+        try:
+            with open(path, "rb") as f:
+                blob, out_tree = pickle.load(f)
+            return self._flat_executable(jax.export.deserialize(blob), out_tree, leaves)
+        except Exception:  # written by another setup, or broken: compile afresh and replace it
+            return None
+
+    def _export(self, path: Path, args, leaves, in_tree):
+        """Export the function over flat arguments, keep it at `path`, and return its executable (None when it
+        does not export)."""
+        if any(len(getattr(x, "sharding", None).device_set) > 1 for x in leaves if hasattr(x, "sharding")):
+            return None
+        out = {}
+
+        def flat(*ls):
+            res = self.jitted(*jax.tree_util.tree_unflatten(in_tree, ls))
+            leaves_out, out["tree"] = jax.tree_util.tree_flatten(res)
+            return leaves_out
+
+        try:
+            exported = jax.export.export(jax.jit(flat))(*leaves)
+            exe = self._flat_executable(exported, out["tree"], leaves)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_suffix(f".tmp{os.getpid()}")
+            tmp.write_bytes(pickle.dumps((exported.serialize(), out["tree"])))
+            os.replace(tmp, path)
+            return exe
+        except Exception:  # host callbacks, Warp's FFI kernels: not exportable
+            return None
 
     def call(self, *args):
         sig = signature(args)
         exe = self.executables.get(sig)
-        compile_s = 0.0
+        if exe is not None:
+            return exe(*args), CompileStats()
+        t0 = time.perf_counter()
+        leaves, in_tree = jax.tree_util.tree_flatten(args)
+        path = self._path(sig)
+        exe, source = None, "disk"
+        if path is not None and path.exists():
+            exe = self._load(path, leaves)
+        if exe is None and path is not None:
+            exe, source = self._export(path, args, leaves, in_tree), "compiled"
         if exe is None:
-            t0 = time.perf_counter()
-            exe = self.jitted.lower(*args).compile()
-            compile_s = time.perf_counter() - t0
-            self.executables[sig] = exe
-        return exe(*args), CompileStats(compile_s)
+            exe, source = self.jitted.lower(*args).compile(), "compiled"
+        self.executables[sig] = exe
+        return exe(*args), CompileStats(time.perf_counter() - t0, source)
 
     def __call__(self, *args):
         return self.call(*args)[0]

@@ -31,7 +31,7 @@ BACKENDS = ("mjx", "warp", "c")
 @dataclasses.dataclass(frozen=True)
 class RolloutStats:
     """How a `rollout(..., stats=True)` call went. compile_s: seconds spent tracing and compiling (or loading
-    a cached executable; 0 when this process had compiled it already); wall_s: the whole call, compile
+    a kept executable, `hexjax.sim.compiled`; 0 when this process had it already); wall_s: the whole call, compile
     included, outputs ready; env_steps: envs x physics steps (settling included); env_steps_per_s: env_steps
     over the call less its compile."""
 
@@ -39,6 +39,7 @@ class RolloutStats:
     wall_s: float
     env_steps: int
     backend: str
+    compiled: str = "process"  # where the program came from: 'compiled' now, 'disk' (kept), or this 'process'
 
     @property
     def run_s(self) -> float:
@@ -90,7 +91,10 @@ def _compiled(robot: RobotSpec, physics: PhysicsConfig, sensors: SensorConfig, c
                 return run(m_shared, params, terrain, keys, d_template)
         return run(m_shared, params, terrain, keys, d_template)
 
-    return sm, Compiled(jax.jit(batched))
+    # a program with host callbacks (progress) or MuJoCo Warp's kernels does not export: keep none of it
+    keep = impl == "jax" and not cfg.progress_every
+    static = (robot, physics, sensors, controller, cfg, n_ctrl, params_batched, impl) if keep else None
+    return sm, Compiled(jax.jit(batched), static=static)
 
 
 def _check_static(robot: RobotSpec, controller, duration, physics: PhysicsConfig, config: RolloutConfig) -> int:
@@ -144,6 +148,7 @@ def rollout(robot: RobotSpec, terrain: Terrain, controller: Controller, params, 
     if backend == "c":
         out, compile_s = rollout_c(robot, terrain, controller, params, n_ctrl, key, physics=physics,
                                    sensors=sensors, config=config, params_batched=params_batched, nthread=nthread)
+        compiled = "compiled" if compile_s else "process"
     else:
         impl = "warp" if backend == "warp" else "jax"
         sm, fn = _compiled(robot, physics, sensors, controller, config, n_ctrl, params_batched, impl)
@@ -162,13 +167,13 @@ def rollout(robot: RobotSpec, terrain: Terrain, controller: Controller, params, 
             model = jax.device_put(model, replicated)
         args = (model, params, terrain, keys) + ((sm.make_data(b),) if impl == "warp" else ())
         out, cs = fn.call(*args)
-        compile_s = cs.compile_s
+        compile_s, compiled = cs.compile_s, cs.source
     if not stats:
         return out
     jax.block_until_ready(out)
     n_steps = (settle_steps(config, controller.dt) + n_ctrl) * substeps(physics, controller.dt)
     return out, RolloutStats(compile_s=compile_s, wall_s=time.perf_counter() - t0, env_steps=b * n_steps,
-                             backend=backend)
+                             backend=backend, compiled=compiled)
 
 
 def rollout_function(robot: RobotSpec, controller: Controller, duration: float, *,

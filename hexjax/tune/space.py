@@ -7,9 +7,9 @@ threshold outside its range. Fields are named by their attribute path in the con
 (`overcome_height`, `lc_trim`, `net.k`); a field may be an array (every entry gets the same bounds).
 
 Presets follow the papers' hand rules and the robots' reach:
-- "tactile" (seed 000, `TactileGaitController`): l_i, h_i, l_k, h_k, the swing slot (gait period / T) and
+- "tactile" (Luneckas 2020, `TactileGaitController`): l_i, h_i, l_k, h_k, the swing slot (gait period / T) and
   the pad threshold;
-- "cpg" (seed 003, `CPGController`): the linear converters' trims (g, h per joint, swing and stance), the
+- "cpg" (Yu 2019, `CPGController`): the linear converters' trims (g, h per joint, swing and stance), the
   F_contact thresholds, T_s, and the elevator's regenerated clearance.
 """
 
@@ -126,7 +126,7 @@ class ParamSpace:
 
 
 SPACES: Dict[str, Dict[str, Bound]] = {
-    # seed 000: the basic and the overcoming step (Eqs. 5-7), the transfer time and the pad threshold
+    # Luneckas 2020: the basic and the overcoming step (Eqs. 5-7), the transfer time and the pad threshold
     "tactile": {
         "step_length": Bound(0.01, 0.08),  # l_i, m; the robot's l_max is 10 cm (Eq. 15)
         "step_height": Bound(0.01, 0.10),  # h_i, m
@@ -135,7 +135,7 @@ SPACES: Dict[str, Dict[str, Bound]] = {
         "swing_time": Bound(0.2, 3.0),  # one transfer slot, s (sets the gait period T)
         "tactile_threshold": Bound(0.05, 5.0),  # N
     },
-    # seed 003: linear-converter trims, contact thresholds (Eqs. 8-9), T_s (Eq. 11), regenerated clearance
+    # Yu 2019: linear-converter trims, contact thresholds (Eqs. 8-9), T_s (Eq. 11), regenerated clearance
     "cpg": {
         "lc_trim": Bound(-0.3, 0.3),  # rad, added to the IK-derived g and h of Eq. 6
         "f_contact": Bound(0.5, 50.0),  # N

@@ -28,7 +28,8 @@ class CPGController(Controller):
     params, `gait_fields`; the gait itself is traced, so gaits share one compiled rollout:
     `default_params(**gait_fields("wave"))`); dt: control period, s (the
     network is integrated with one RK4 step per period); feedback: False runs the bare network and
-    converter blind (no FSM, no reflexes); elevator / searching: enable each reflex; smooth: sigmoid gates
+    converter blind (no FSM, no reflexes); elevator / searching: enable each reflex (these three set the
+    default params of the same names, which the step reads: one program serves every variant); smooth: sigmoid gates
     instead of step functions; search_periods: how many slowed leader periods a search lasts before the
     leg gives up (4 reach 50 mm below the AEP on `yu2019`; the first alone 21 mm); follower_reset: see
     `hexjax.control.cpg`. step_length, clearance (h_max), elevated_clearance (m) set the default params: 40 and
@@ -73,10 +74,13 @@ class CPGController(Controller):
             clearance=jnp.asarray(self.clearance), elevated_clearance=jnp.asarray(self.elevated_clearance),
             body_height=jnp.asarray(self.robot.hip_height), lc_trim=jnp.zeros((2, 2, 3)),
             f_contact=jnp.array([10.0, 10.0, 2.0]), ramp_time=jnp.asarray(0.5),
-            elevator_y1=jnp.asarray(-1.0), elevator_window=jnp.asarray(-0.5), search_amp=jnp.radians(jnp.array([7.5, 4.0, 2.5])),
+            elevator_y1=jnp.asarray(-1.0), elevator_window=jnp.asarray(-0.5),
+            search_amp=jnp.radians(jnp.array([7.5, 4.0, 2.5])),
             search_sigma=jnp.asarray(1.2), search_freq=jnp.array([0.5, 1.5, 1.5]),
             raised_tolerance=jnp.asarray(0.015),
-            temp_force=jnp.asarray(1.0), temp_phase=jnp.asarray(0.05), temp_height=jnp.asarray(0.002))
+            temp_force=jnp.asarray(1.0), temp_phase=jnp.asarray(0.05), temp_height=jnp.asarray(0.002),
+            feedback=jnp.asarray(float(self.feedback)), elevator=jnp.asarray(float(self.elevator)),
+            searching=jnp.asarray(float(self.searching)))
 
     def validate_params(self, p: CPGParams) -> None:
         """Host-side checks on concrete params, before tracing; names the field and value."""
@@ -97,6 +101,10 @@ class CPGController(Controller):
             v = arr(f)
             if not np.all(np.isfinite(v)) or np.any(v < 0):
                 raise ValueError(f"cpg.{f}={v.tolist()!r}: must be finite and >= 0")
+        for f in ("feedback", "elevator", "searching"):
+            v = arr(f)
+            if not np.all((v == 0) | (v == 1)):
+                raise ValueError(f"cpg.{f}={v.tolist()!r}: must be 0 (off) or 1 (on)")
         duty = arr("duty")
         if np.any(duty < 2):
             raise ValueError(f"cpg.duty={duty.tolist()!r}: gait indicator gamma must be >= 2 (Eq. 16)")
@@ -167,7 +175,8 @@ class CPGController(Controller):
         zeros, zeros3 = jnp.zeros(N_LEGS), jnp.zeros((N_LEGS, 3))
         q0 = converter_output(p, lc, z, swing, zeros, zeros3, zeros3, zeros)
         return CPGState(z=z, swing=swing, hold=zeros, elev_on=zeros, elev=zeros, search=zeros, search_n=zeros,
-                        failed=zeros, q_ref=q0, hold_q=q0, offset=zeros3, lam_ob=zeros, q_cmd=q0, q_meas=q0, kept=zeros, level=zeros, searched=zeros, paused=zeros,
+                        failed=zeros, q_ref=q0, hold_q=q0, offset=zeros3, lam_ob=zeros, q_cmd=q0, q_meas=q0, kept=zeros,
+                        level=zeros, searched=zeros, paused=zeros,
                         n_elev=zeros, n_search=zeros, n_found=zeros, n_fail=zeros, depth=zeros,
                         wait_steps=zeros, t=jnp.asarray(0.0))
 
@@ -184,11 +193,16 @@ class CPGController(Controller):
 
         # Sensory neurons, Eqs. 7-9: toe force in the torso frame (x forward, y lateral, z up).
         f = quat_to_body(obs.torso_quat, obs.foot_force)
-        if self.feedback:
-            lam_ob = 1.0 - (1.0 - g(jnp.abs(f[:, 1]) - p.f_contact[0], tf)) * (1.0 - g(jnp.abs(f[:, 0]) - p.f_contact[1], tf))
-            lam_td = g(jnp.abs(f[:, 2]) - p.f_contact[2], tf)
-        else:
-            lam_ob, lam_td = jnp.zeros(N_LEGS), jnp.ones(N_LEGS)
+        # `feedback`, `elevator`, `searching` are params (0 or 1), so the variants of an experiment share one
+        # compiled program: the feedback path is computed and selected (`fb`), the reflexes are gated
+        fb = p.feedback > 0.5
+
+        def pick(a, b):
+            return jax.tree_util.tree_map(lambda x, y: jnp.where(fb, x, y), a, b)
+
+        lam_ob = 1.0 - (1.0 - g(jnp.abs(f[:, 1]) - p.f_contact[0], tf)) * (1.0 - g(jnp.abs(f[:, 0]) - p.f_contact[1], tf))
+        lam_td = g(jnp.abs(f[:, 2]) - p.f_contact[2], tf)
+        lam_ob, lam_td = pick((lam_ob, lam_td), (jnp.zeros(N_LEGS), jnp.ones(N_LEGS)))
         swing, hold, search, failed = s.swing, s.hold, s.search, s.failed
         # Table 2 ATD, "all legs get footholds" (Sect. 5.2): no leg is in the air. A leg is airborne while it
         # swings, searches or has given up; a stance leg, or a swing leg that stopped on a touchdown (sTD),
@@ -202,96 +216,102 @@ class CPGController(Controller):
         search_n = s.search_n
         n_elev, n_search, n_found, n_fail, depth = s.n_elev, s.n_search, s.n_found, s.n_fail, s.depth
         one = jnp.ones(N_LEGS)
+        kept, paused = s.kept, s.paused
+        before = (z, swing, elev_on, elev, offset, hold, hold_q, kept, level, searched, paused, depth, n_found,
+                  search, n_elev)
 
-        if self.feedback:
-            # (1) ATD releases every prolonged leg: swing-prolong -> stance, stance-prolong -> swing; a stance
-            # leg frozen mid-stance by another leg's reflex (`paused`) resumes its stance.
-            toggle = hold * atd * (1.0 - s.paused)
-            to_stance, to_swing = toggle * swing, toggle * (1.0 - swing)
-            # Table 2 aTD: a stance ends when the alien group touches down. Generalised to Eq. 16 gaits: the
-            # legs of the swing slot after the one landing now lift off, wherever they are in their stance.
-            nxt = jnp.mod(p.leg_slot + 1.0, p.duty)
-            # slots are whole numbers: matching them is structure, not a decision, so it is exact in both forms
-            follows = (jnp.abs(p.leg_slot[:, None] - nxt[None, :]) < 0.5).astype(jnp.float32)
-            forced = (1.0 - swing) * (1.0 - toggle) * atd * jnp.clip(follows @ to_stance, 0.0, 1.0)
-            to_swing = to_swing + forced
-            rel = toggle + forced
-            # The leader keeps its position and amplitude and moves on in the new direction at the new
-            # Eq. 16 frequency (a swing stopped early by a touchdown turns back from where it stopped).
-            w_sw, w_st = self._leader_omegas(p)
-            y1 = z[:, 0, 1]
-            y1_st = -jnp.abs(y1) * (w_st / w_sw)
-            y1_sw = jnp.abs(y1) * (w_sw / w_st)
-            z = z.at[:, 0, 1].set(y1 + to_stance * (y1_st - y1) + to_swing * (y1_sw - y1))
-            z = self._reset_followers(z, rel)
-            swing = swing + rel * (1.0 - 2.0 * swing)
-            elev_on, elev = elev_on * (1.0 - to_stance), elev * (1.0 - to_stance)
-            zero3 = jnp.zeros((N_LEGS, 3))
-            q_new = converter_output(p, lc, z, swing, elev, zero3, zero3, searched)  # the bare converter
-            # Offsets carry a searched foothold, or one found more than `raised_tolerance` above the feet in
-            # stance (the top of a step), through the next stance, and keep the PEP->swing hand-over continuous.
-            # After an ordinary touchdown the stance converter takes over as it is: an offset there would
-            # ratchet the body down by every slightly early touchdown.
-            above = self._height_above_support(obs, s.q_cmd, s.swing, s.level)
-            raised = g(above - p.raised_tolerance, p.temp_height)
-            carry = to_swing + to_stance * (1.0 - (1.0 - s.kept) * (1.0 - raised))
-            offset = offset + rel[:, None] * (carry[:, None] * (s.q_cmd - q_new) - offset)
-            kept = s.kept * (1.0 - rel)
-            # A leg released into stance records the height of a raised foothold (more than `raised_tolerance`
-            # up): measured afresh along gravity against the other feet at every touchdown, so a sagging or
-            # tilted torso does not build up in it. A searched foothold is held as found instead.
-            level = level + to_stance * (raised * (1.0 - s.kept) * above - level)
-            searched = s.searched + to_stance * (s.kept - s.searched)
-            hold = hold * (1.0 - atd)
-            paused = s.paused * (1.0 - atd)
+        # the feedback path, blocks (1)-(4b); selected by `fb` after it
+        # (1) ATD releases every prolonged leg: swing-prolong -> stance, stance-prolong -> swing; a stance
+        # leg frozen mid-stance by another leg's reflex (`paused`) resumes its stance.
+        toggle = hold * atd * (1.0 - s.paused)
+        to_stance, to_swing = toggle * swing, toggle * (1.0 - swing)
+        # Table 2 aTD: a stance ends when the alien group touches down. Generalised to Eq. 16 gaits: the
+        # legs of the swing slot after the one landing now lift off, wherever they are in their stance.
+        nxt = jnp.mod(p.leg_slot + 1.0, p.duty)
+        # slots are whole numbers: matching them is structure, not a decision, so it is exact in both forms
+        follows = (jnp.abs(p.leg_slot[:, None] - nxt[None, :]) < 0.5).astype(jnp.float32)
+        forced = (1.0 - swing) * (1.0 - toggle) * atd * jnp.clip(follows @ to_stance, 0.0, 1.0)
+        to_swing = to_swing + forced
+        rel = toggle + forced
+        # The leader keeps its position and amplitude and moves on in the new direction at the new
+        # Eq. 16 frequency (a swing stopped early by a touchdown turns back from where it stopped).
+        w_sw, w_st = self._leader_omegas(p)
+        y1 = z[:, 0, 1]
+        y1_st = -jnp.abs(y1) * (w_st / w_sw)
+        y1_sw = jnp.abs(y1) * (w_sw / w_st)
+        z = z.at[:, 0, 1].set(y1 + to_stance * (y1_st - y1) + to_swing * (y1_sw - y1))
+        z = self._reset_followers(z, rel)
+        swing = swing + rel * (1.0 - 2.0 * swing)
+        elev_on, elev = elev_on * (1.0 - to_stance), elev * (1.0 - to_stance)
+        zero3 = jnp.zeros((N_LEGS, 3))
+        q_new = converter_output(p, lc, z, swing, elev, zero3, zero3, searched)  # the bare converter
+        # Offsets carry a searched foothold, or one found more than `raised_tolerance` above the feet in
+        # stance (the top of a step), through the next stance, and keep the PEP->swing hand-over continuous.
+        # After an ordinary touchdown the stance converter takes over as it is: an offset there would
+        # ratchet the body down by every slightly early touchdown.
+        above = self._height_above_support(obs, s.q_cmd, s.swing, s.level)
+        raised = g(above - p.raised_tolerance, p.temp_height)
+        carry = to_swing + to_stance * (1.0 - (1.0 - s.kept) * (1.0 - raised))
+        offset = offset + rel[:, None] * (carry[:, None] * (s.q_cmd - q_new) - offset)
+        kept = s.kept * (1.0 - rel)
+        # A leg released into stance records the height of a raised foothold (more than `raised_tolerance`
+        # up): measured afresh along gravity against the other feet at every touchdown, so a sagging or
+        # tilted torso does not build up in it. A searched foothold is held as found instead.
+        level = level + to_stance * (raised * (1.0 - s.kept) * above - level)
+        searched = s.searched + to_stance * (s.kept - s.searched)
+        hold = hold * (1.0 - atd)
+        paused = s.paused * (1.0 - atd)
 
-            # (2) A searching leg that touches down has found its foothold: stop, hold the posture, and
-            # put the network at the end of swing so the next stance starts in step with the others.
-            found = search * lam_td
-            q_meas = obs.qpos.reshape(N_LEGS, 3)
-            z_foot = leg_fk(self.robot, q_meas)[:, 2]
-            depth = jnp.maximum(depth, found * (lc.z_aep - z_foot))
-            n_found = n_found + found
-            z_end = locked_state(jnp.zeros(N_LEGS), self._omegas(p, one, jnp.zeros(N_LEGS))[:, 0])
-            z = z + found[:, None, None] * (z_end - z)
-            hold_q = hold_q + found[:, None] * (s.q_cmd - hold_q)
-            # the leg holds the posture it found; at release it becomes the stance offset (`kept`)
-            hold = hold + found * (1.0 - hold)
-            kept = kept + found * (1.0 - kept)
-            search = search * (1.0 - found)
+        # (2) A searching leg that touches down has found its foothold: stop, hold the posture, and
+        # put the network at the end of swing so the next stance starts in step with the others.
+        found = search * lam_td
+        q_meas = obs.qpos.reshape(N_LEGS, 3)
+        z_foot = leg_fk(self.robot, q_meas)[:, 2]
+        depth = jnp.maximum(depth, found * (lc.z_aep - z_foot))
+        n_found = n_found + found
+        z_end = locked_state(jnp.zeros(N_LEGS), self._omegas(p, one, jnp.zeros(N_LEGS))[:, 0])
+        z = z + found[:, None, None] * (z_end - z)
+        hold_q = hold_q + found[:, None] * (s.q_cmd - hold_q)
+        # the leg holds the posture it found; at release it becomes the stance offset (`kept`)
+        hold = hold + found * (1.0 - hold)
+        kept = kept + found * (1.0 - kept)
+        search = search * (1.0 - found)
 
-            # (3) Elevator reflex, Eqs. 10-11: rising edge of lambda_ob while the leg sweeps forward.
-            if self.elevator:
-                rise = lam_ob * (1.0 - s.lam_ob)
-                # "halfway of the swing": once the leader is past `elevator_window`; at lift-off the foot
-                # still carries its stance load and friction alone can exceed F_contact-x/y.
-                # Once per swing: a regenerated swing that meets the face again goes on and lands in front
-                # of it (the next swing then meets the face earlier and clears it), instead of retracting
-                # again and again against a face near its AEP.
-                ert = (swing * (1.0 - hold) * (1.0 - search) * (1.0 - elev_on) * g(z[:, 0, 1], tp)
-                       * g(z[:, 0, 0] - p.elevator_window, tp) * rise)
-                scale = self._omegas(p, one, jnp.zeros(N_LEGS))[:, 0] / p.net.omega[0]
-                target = p.elevator_y1 * scale
-                z = z.at[:, 0, 1].add(ert * (target - z[:, 0, 1]))
-                z = self._reset_followers(z, ert)
-                elev_on = elev_on + ert * (1.0 - elev_on)
-                n_elev = n_elev + ert
+        # (3) Elevator reflex, Eqs. 10-11: rising edge of lambda_ob while the leg sweeps forward (gated by
+        # the `elevator` param).
+        rise = lam_ob * (1.0 - s.lam_ob)
+        # "halfway of the swing": once the leader is past `elevator_window`; at lift-off the foot
+        # still carries its stance load and friction alone can exceed F_contact-x/y.
+        # Once per swing: a regenerated swing that meets the face again goes on and lands in front
+        # of it (the next swing then meets the face earlier and clears it), instead of retracting
+        # again and again against a face near its AEP.
+        ert = (swing * (1.0 - hold) * (1.0 - search) * (1.0 - elev_on) * g(z[:, 0, 1], tp)
+               * g(z[:, 0, 0] - p.elevator_window, tp) * rise) * p.elevator
+        scale = self._omegas(p, one, jnp.zeros(N_LEGS))[:, 0] / p.net.omega[0]
+        target = p.elevator_y1 * scale
+        z = z.at[:, 0, 1].add(ert * (target - z[:, 0, 1]))
+        z = self._reset_followers(z, ert)
+        elev_on = elev_on + ert * (1.0 - elev_on)
+        n_elev = n_elev + ert
 
-            # (4) Early touchdown past the apex aborts the swing: swing-prolong (Table 2 sTD).
-            # A foot scraping an edge (lambda_ob on) has not landed.
-            etd = (swing * (1.0 - hold) * (1.0 - search) * lam_td * (1.0 - lam_ob)
-                   * g(z[:, 0, 0], tp) * g(z[:, 0, 1], tp))
-            hold_q = hold_q + etd[:, None] * (s.q_cmd - hold_q)
-            hold = hold + etd * (1.0 - hold)
+        # (4) Early touchdown past the apex aborts the swing: swing-prolong (Table 2 sTD).
+        # A foot scraping an edge (lambda_ob on) has not landed.
+        etd = (swing * (1.0 - hold) * (1.0 - search) * lam_td * (1.0 - lam_ob)
+               * g(z[:, 0, 0], tp) * g(z[:, 0, 1], tp))
+        hold_q = hold_q + etd[:, None] * (s.q_cmd - hold_q)
+        hold = hold + etd * (1.0 - hold)
 
-            # (4b) "The FSM synchronizes the legs by enforcing the leg on the ground come into the Swing/Stance
-            # Prolong state until the leg executing local reflex reaches the touchdown state" (Sect. 5.2):
-            # while any leg runs a reflex, every stance leg freezes where it is.
-            reflex = 1.0 - jnp.prod(1.0 - jnp.clip(elev_on + search + failed, 0.0, 1.0))
-            pz = reflex * (1.0 - swing) * (1.0 - hold)
-            hold_q = hold_q + pz[:, None] * (s.q_cmd - hold_q)
-            hold = hold + pz * (1.0 - hold)
-            paused = paused + pz * (1.0 - paused)
+        # (4b) "The FSM synchronizes the legs by enforcing the leg on the ground come into the Swing/Stance
+        # Prolong state until the leg executing local reflex reaches the touchdown state" (Sect. 5.2):
+        # while any leg runs a reflex, every stance leg freezes where it is.
+        reflex = 1.0 - jnp.prod(1.0 - jnp.clip(elev_on + search + failed, 0.0, 1.0))
+        pz = reflex * (1.0 - swing) * (1.0 - hold)
+        hold_q = hold_q + pz[:, None] * (s.q_cmd - hold_q)
+        hold = hold + pz * (1.0 - hold)
+        paused = paused + pz * (1.0 - paused)
+        (z, swing, elev_on, elev, offset, hold, hold_q, kept, level, searched, paused, depth, n_found, search,
+         n_elev) = pick((z, swing, elev_on, elev, offset, hold, hold_q, kept, level, searched, paused, depth, n_found,
+                         search, n_elev), before)
 
         # (5) Integrate the network one control period (RK4); prolonged legs are frozen.
         omega = self._omegas(p, swing, search)
@@ -312,35 +332,39 @@ class CPGController(Controller):
         q_lc = converter_output(p, lc, z, swing, elev, offset, dq_level, searched)
         q_search = search_output(p, lc, z, q_ref, search_n)
 
-        if self.feedback:
-            # (6) End of swing: touchdown -> swing-prolong; none -> searching reflex (SRT, Eqs. 12-15).
-            end_sw = swing * (1.0 - hold) * (1.0 - search) * cross_fwd_end
-            srt = end_sw * (1.0 - lam_td) if self.searching else jnp.zeros(N_LEGS)
-            stop = end_sw - srt
-            hold_q = hold_q + stop[:, None] * (q_lc - hold_q)
-            hold = hold + stop * (1.0 - hold)
-            q_ref = q_ref + srt[:, None] * (q_lc - q_ref)
-            search_n = search_n * (1.0 - srt)
-            search = search + srt * (1.0 - search)
-            n_search = n_search + srt
-            # End of stance -> stance-prolong until ATD (aTD of the alien group is part of ATD).
-            end_st = (1.0 - swing) * (1.0 - hold) * cross_back_end
-            hold_q = hold_q + end_st[:, None] * (q_lc - hold_q)
-            hold = hold + end_st * (1.0 - hold)
-            # A search period ends when the slowed leader is back at the AEP: search deeper, or give up.
-            period = search * cross_fwd_end * (1.0 - srt)
-            more = self._gate(self.search_periods - 1.5 - search_n, tp)
-            search_n = search_n + period * more
-            give_up = period * (1.0 - more)
-            failed = failed + give_up * (1.0 - failed)
-            hold_q = hold_q + give_up[:, None] * (q_ref - hold_q)
-            hold = hold + give_up * (1.0 - hold)
-            search = search * (1.0 - give_up)
-            n_fail = n_fail + give_up
-            q_search = search_output(p, lc, z, q_ref, search_n)
-        else:
-            swing = (z[:, 0, 1] > 0).astype(jnp.float32) if not self.smooth else jax.nn.sigmoid(z[:, 0, 1] / tp)
-            q_lc = converter_output(p, lc, z, swing, elev, offset, dq_level, searched)
+        blind = (hold_q, hold, q_ref, search_n, search, n_search, failed, n_fail, q_search)
+        # the feedback path, block (6); selected by `fb` after it
+        # (6) End of swing: touchdown -> swing-prolong; none -> searching reflex (SRT, Eqs. 12-15).
+        end_sw = swing * (1.0 - hold) * (1.0 - search) * cross_fwd_end
+        srt = end_sw * (1.0 - lam_td) * p.searching
+        stop = end_sw - srt
+        hold_q = hold_q + stop[:, None] * (q_lc - hold_q)
+        hold = hold + stop * (1.0 - hold)
+        q_ref = q_ref + srt[:, None] * (q_lc - q_ref)
+        search_n = search_n * (1.0 - srt)
+        search = search + srt * (1.0 - search)
+        n_search = n_search + srt
+        # End of stance -> stance-prolong until ATD (aTD of the alien group is part of ATD).
+        end_st = (1.0 - swing) * (1.0 - hold) * cross_back_end
+        hold_q = hold_q + end_st[:, None] * (q_lc - hold_q)
+        hold = hold + end_st * (1.0 - hold)
+        # A search period ends when the slowed leader is back at the AEP: search deeper, or give up.
+        period = search * cross_fwd_end * (1.0 - srt)
+        more = self._gate(self.search_periods - 1.5 - search_n, tp)
+        search_n = search_n + period * more
+        give_up = period * (1.0 - more)
+        failed = failed + give_up * (1.0 - failed)
+        hold_q = hold_q + give_up[:, None] * (q_ref - hold_q)
+        hold = hold + give_up * (1.0 - hold)
+        search = search * (1.0 - give_up)
+        n_fail = n_fail + give_up
+        q_search = search_output(p, lc, z, q_ref, search_n)
+        # blind: the swing follows the leader's sign and the converter runs bare
+        swing_blind = (z[:, 0, 1] > 0).astype(jnp.float32) if not self.smooth else jax.nn.sigmoid(z[:, 0, 1] / tp)
+        q_lc_blind = converter_output(p, lc, z, swing_blind, elev, offset, dq_level, searched)
+        (hold_q, hold, q_ref, search_n, search, n_search, failed, n_fail, q_search, swing, q_lc) = pick(
+            (hold_q, hold, q_ref, search_n, search, n_search, failed, n_fail, q_search, swing, q_lc),
+            blind + (swing_blind, q_lc_blind))
 
         q_free = search[:, None] * q_search + (1.0 - search[:, None]) * q_lc
         q = hold[:, None] * hold_q + (1.0 - hold[:, None]) * q_free
@@ -349,7 +373,7 @@ class CPGController(Controller):
         new = CPGState(z=z, swing=swing, hold=hold, elev_on=elev_on, elev=elev, search=search, search_n=search_n,
                        failed=failed, q_ref=q_ref, hold_q=hold_q, offset=offset, lam_ob=lam_ob, q_cmd=q,
                        q_meas=obs.qpos.reshape(N_LEGS, 3),
-                       kept=kept if self.feedback else s.kept, level=level, searched=searched, paused=paused if self.feedback else s.paused,
+                       kept=kept, level=level, searched=searched, paused=paused,
                        n_elev=n_elev, n_search=n_search, n_found=n_found, n_fail=n_fail, depth=depth,
                        wait_steps=s.wait_steps + wait, t=s.t + self.dt)
         return new, q.reshape(-1)

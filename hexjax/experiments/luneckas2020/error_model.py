@@ -1,4 +1,4 @@
-"""The analytic positional-error model of Luneckas et al. 2020 (seed 000), Sect. 2.5 and 2.7, Eqs. 8-14.
+"""The analytic positional-error model of Luneckas et al. 2020, Sect. 2.5 and 2.7, Eqs. 8-14.
 
 One leg blocked by an obstacle loses a distance dL while the other side of the robot walks on; the robot
 turns about the blocked leg by alpha_k (the isosceles triangle EFD of Fig. 9b, sides a, a and base dL) and

@@ -1,4 +1,4 @@
-"""`hexjax experiment luneckas2020`: the experiment matrix of Luneckas et al. 2020 (seed 000) Sect. 3.3.
+"""`hexjax experiment luneckas2020`: the experiment matrix of Luneckas et al. 2020 Sect. 3.3.
 
 Gaits {wave 0.013 m/s, 20 steps/m; tripod 0.036 m/s, 13 steps/m} x density {low, high} x height {small,
 large} x distance {1 m, 2 m}, each with and without the tactile method, plus the obstacle-free

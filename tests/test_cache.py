@@ -1,0 +1,54 @@
+"""Compile once per machine (hexjax.cache): where the persistent compilation cache goes, that it is told once,
+that it can be turned off, and that a compiled program lands in it."""
+
+import os
+import subprocess
+import sys
+
+
+def _run(code, **env):
+    e = {k: v for k, v in os.environ.items() if not k.startswith("JAX_") or k == "JAX_PLATFORMS"}
+    e.update(env)
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=180, env=e)
+    assert r.returncode == 0, r.stderr[-2000:]
+    return r
+
+
+def test_cache_folder_is_told_once_and_receives_compiled_programs(tmp_path):
+    code = ("import os, hexjax, jax, jax.numpy as jnp\n"
+            "print(os.environ['JAX_COMPILATION_CACHE_DIR'])\n"
+            "print(jax.jit(lambda x: jnp.sin(x) @ x.T)(jnp.ones((64, 64))).shape)")
+    # min compile time 0 so that this small program is kept (hexjax keeps programs of >= 0.5 s)
+    first = _run(code, HEXJAX_CACHE_DIR=str(tmp_path), JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0")
+    assert first.stdout.splitlines()[0] == str(tmp_path / "jax")
+    assert f"compiled programs are cached in {tmp_path / 'jax'}" in first.stderr
+    entries = os.listdir(tmp_path / "jax")
+    assert entries, "no compiled program was written to the cache"
+    second = _run(code, HEXJAX_CACHE_DIR=str(tmp_path), JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0")
+    assert "compiled programs are cached" not in second.stderr  # said once, when the folder was made
+    assert sorted(os.listdir(tmp_path / "jax")) == sorted(entries)  # the second run loaded, wrote nothing new
+
+
+def test_cache_off_and_jax_imported_first(tmp_path):
+    off = _run("import os, hexjax\nprint(os.environ.get('JAX_COMPILATION_CACHE_DIR', 'unset'))", HEXJAX_CACHE_DIR="off")
+    assert off.stdout.strip() == "unset" and "cached" not in off.stderr
+    # jax imported before hexjax: the cache is set through jax.config instead of the environment
+    late = _run("import jax, hexjax\nprint(jax.config.jax_compilation_cache_dir)", HEXJAX_CACHE_DIR=str(tmp_path / "c"))
+    assert late.stdout.strip() == str(tmp_path / "c" / "jax")
+
+
+def test_a_compiled_rollout_is_kept_and_reloaded_by_the_next_process(tmp_path):
+    """The second process neither traces nor compiles the rollout: it loads the kept program
+    (hexjax.sim.compiled) and the persistent XLA cache, and gives the same numbers."""
+    code = ("import jax, numpy as np, hexjax\n"
+            "r = hexjax.luneckas2020(); c = hexjax.GaitController(r)\n"
+            "t = hexjax.sample(hexjax.get_terrain('flat'), jax.random.PRNGKey(0), 2)\n"
+            "s, st = hexjax.rollout(r, t, c, c.default_params(), 0.2, jax.random.PRNGKey(1), "
+            "physics=hexjax.PhysicsConfig(slots_per_leg=0, torso_slots=0), stats=True)\n"
+            "print(st.compiled, round(st.compile_s, 2), repr(np.asarray(s.end_pose).tolist()))")
+    first = _run(code, HEXJAX_CACHE_DIR=str(tmp_path)).stdout.split(" ", 2)
+    second = _run(code, HEXJAX_CACHE_DIR=str(tmp_path)).stdout.split(" ", 2)
+    assert first[0] == "compiled" and second[0] == "disk"
+    assert float(second[1]) < 0.5 * float(first[1])
+    assert first[2] == second[2]  # bit-identical end poses
+    assert len(os.listdir(tmp_path / "programs")) == 1

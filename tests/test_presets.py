@@ -1,0 +1,103 @@
+"""Presets as data (configs/): every robot, terrain, experiment and command loads from YAML, from any working
+directory; a file of one's own works wherever a preset name does; a bad file fails in one line that names the
+file, the key and the value."""
+
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+import yaml
+
+from hexjax.cli import main
+from hexjax.experiments.registry import commands, experiments
+from hexjax.world.files import config_dir, preset_names, read_yaml, resolve
+from hexjax.world.presets import get_robot, get_terrain
+
+
+def test_shipped_presets_load_with_the_papers_numbers():
+    assert preset_names("robots") == ["chen2019", "luneckas2020", "yu2019"]
+    assert len(preset_names("terrains")) == 12 and len(preset_names("tune")) >= 2
+    lun, yu = get_robot("luneckas2020"), get_robot("yu2019")
+    # Luneckas 2020 Sect. 2.1: coxa 5 cm, femur 8.2 cm, tibia 12 cm, 1.5 kg; Yu 2019 Table 3: 50/120/150 mm
+    assert (lun.coxa_length, lun.femur_length, lun.tibia_length, lun.total_mass) == (0.05, 0.082, 0.12, 1.5)
+    assert (yu.coxa_length, yu.femur_length, yu.tibia_length, yu.body_length) == (0.05, 0.12, 0.15, 0.25)
+    assert get_terrain("ditch40").height_range == (0.04, 0.04) and get_terrain("waves").height_range[1] == 0.178
+    assert get_terrain("high-large", length=2.3).length == 2.3  # overrides are checked like the file's keys
+    for name in preset_names("robots"):
+        get_robot(name).validate()
+    assert set(experiments()) >= {"luneckas2020", "yu2019-step", "yu2019-ditch", "zhao2018", "zhao2018-mjx",
+                                  "chen2019", "chen2019-incenter"}
+    assert set(commands()) == {"evaluate", "bench", "tune", "render", "ppo", "terrain"}
+
+
+def test_presets_are_found_from_any_working_directory(tmp_path):
+    code = ("from hexjax.world.presets import get_robot, get_terrain\n"
+            "from hexjax.experiments.registry import experiments\n"
+            "print(get_robot('yu2019').kp, get_terrain('step40').kind, len(experiments()))")
+    r = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=120,
+                       env={**os.environ, "HEXJAX_CACHE_DIR": "off"})
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert r.stdout.split() == ["60.0", "step", str(len(experiments()))]
+    assert config_dir().is_dir() and (config_dir() / "robots" / "yu2019.yaml").is_file()
+
+
+def _write(tmp_path, name, doc):
+    p = tmp_path / name
+    p.write_text(yaml.safe_dump(doc))
+    return str(p)
+
+
+@pytest.mark.parametrize("change,match", [
+    ({"coxa_lenght": 0.05}, r"robot.coxa_lenght: unknown key \(did you mean 'coxa_length'\?\)"),
+    ({"femur_length": -0.082}, r"robot.femur_length=-0.082: must be a finite number > 0"),
+    ({"tibia_length": "long"}, r"robot.tibia_length='long': must be a number"),
+    ({"tibia_length": 120.0}, r"robot.tibia_length=120.0: must be at most 2.0 m"),
+    ({"coxa_range": [1.2, -1.2]}, r"robot.coxa_range=\(1.2, -1.2\): min must be < max"),
+    ({"kp": float("nan")}, r"robot.kp=nan: must be a finite number"),
+    ({"femur_range": [0.1, 0.2, 0.3]}, r"robot.femur_range=\[0.1, 0.2, 0.3\]: must be a list of 2 values"),
+])
+def test_a_bad_robot_file_fails_in_one_line_naming_file_key_and_value(tmp_path, change, match):
+    doc = {**read_yaml(resolve("robots", "luneckas2020")), **change}
+    path = _write(tmp_path, "my_robot.yaml", doc)
+    with pytest.raises(ValueError, match=match) as e:
+        get_robot(path)
+    msg = str(e.value)
+    assert msg.startswith(path + ": ") and "\n" not in msg
+
+
+def test_a_bad_terrain_file_and_bad_names(tmp_path):
+    doc = {**read_yaml(resolve("terrains", "high-small")), "height_range": [0.05, 0.03]}
+    path = _write(tmp_path, "t.yaml", doc)
+    with pytest.raises(ValueError, match=r"t.yaml: terrain.height_range=\(0.05, 0.03\): min must be <= max"):
+        get_terrain(path)
+    with pytest.raises(ValueError, match=r"t.yaml: terrain.length=-1.0: must be a finite number > 0"):
+        get_terrain(_write(tmp_path, "t.yaml", {**doc, "height_range": [0.03, 0.05], "length": -1.0}))
+    with pytest.raises(ValueError, match=r"terrain preset 'hihg-small' unknown \(did you mean 'high-small'\?\)"):
+        get_terrain("hihg-small")
+    with pytest.raises(ValueError, match="nowhere.yaml: no such file"):
+        get_robot(str(tmp_path / "nowhere.yaml"))
+    (tmp_path / "broken.yaml").write_text("kind: [flat\n")
+    with pytest.raises(ValueError, match=r"broken.yaml: not valid YAML \(line"):
+        get_terrain(str(tmp_path / "broken.yaml"))
+
+
+def test_own_robot_and_terrain_files_work_in_the_cli(tmp_path, capsys):
+    """`--robot my.yaml` and a terrain file of one's own in `--categories`: a longer-legged Luneckas robot on
+    a denser field, evaluated (MuJoCo C physics, so no MJX program is compiled for the new robot)."""
+    robot = {**read_yaml(resolve("robots", "luneckas2020")), "name": "long_legs", "tibia_length": 0.13}
+    terrain = {**read_yaml(resolve("terrains", "high-small")), "height_range": [0.01, 0.02]}
+    rp, tp = _write(tmp_path, "long_legs.yaml", robot), _write(tmp_path, "low_bumps.yaml", terrain)
+    out = tmp_path / "ev.json"
+    assert main(["evaluate", "--robot", rp, "--categories", f"flat,{tp}", "--batch", "2", "--distance", "0.3",
+                 "--backend", "c", "--json", str(out)]) == 0
+    res = json.loads(out.read_text())
+    assert res["config"]["robot"] == "long_legs" and set(res["categories"]) == {"flat", tp}
+    for stats in res["categories"].values():
+        assert stats["nan"] == 0 and stats["advance_m"] > 0.15
+    capsys.readouterr()
+    bad = _write(tmp_path, "bad.yaml", {**robot, "kp": -1})
+    assert main(["evaluate", "--robot", bad, "--batch", "2", "--backend", "c"]) == 2
+    err = capsys.readouterr().err
+    assert "bad.yaml: robot.kp=-1.0: must be a finite number > 0" in err and err.count("\n") == 1

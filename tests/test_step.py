@@ -1,0 +1,64 @@
+"""The control step's pieces (hexjax.sim.step), worked by hand: the fall test and the summary accumulators
+that the MJX rollout, the MuJoCo C backend and the Brax env share."""
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from hexjax.sim.config import PhysicsConfig, RolloutConfig
+from hexjax.sim.step import accumulate, control_steps, fall_state, init_acc, settle_steps, substeps, tilt
+
+
+def _q(x, y, z, yaw=0.0, roll=0.0):
+    """Generalised position (25,): torso at (x, y, z), heading yaw then roll about the torso x axis."""
+    cy, sy, cr, sr = math.cos(yaw / 2), math.sin(yaw / 2), math.cos(roll / 2), math.sin(roll / 2)
+    quat = [cy * cr, cy * sr, sy * sr, sy * cr]  # q_yaw * q_roll
+    return jnp.asarray([x, y, z, *quat] + [0.0] * 18, jnp.float32)
+
+
+def test_counts():
+    assert substeps(PhysicsConfig(timestep=0.005), 0.02) == 4
+    with pytest.raises(ValueError, match="whole multiple"):
+        substeps(PhysicsConfig(timestep=0.003), 0.02)
+    assert settle_steps(RolloutConfig(settle_time=0.3), 0.02) == 15
+    assert control_steps(1.0, 0.02) == 50 and control_steps(1.01, 0.02) == 51
+
+
+def test_fall_state_is_tilt_or_height():
+    cfg = RolloutConfig()  # 60 deg, 3 cm
+    for roll, z, ground, fallen in ((0.0, 0.1, 0.0, False), (math.radians(59), 0.1, 0.0, False),
+                                    (math.radians(61), 0.1, 0.0, True), (0.0, 0.029, 0.0, True),
+                                    (0.0, 0.01, -0.04, False)):  # a ditch floor 4 cm down: 5 cm above it
+        f, t, h = fall_state(cfg, _q(0.0, 0.0, z, yaw=1.0, roll=roll), ground)
+        assert bool(f) == fallen, (roll, z, ground)
+        assert float(t) == pytest.approx(max(roll, 1.4e-3), abs=2e-3)
+        assert float(h) == pytest.approx(z - ground, abs=1e-7)
+    assert float(tilt(_q(0, 0, 0, roll=math.pi / 2)[3:7])) == pytest.approx(math.pi / 2, abs=1e-4)
+
+
+def test_accumulators_worked_by_hand():
+    """Two settling steps, then three walking steps: the start pose is the pose after the last settling
+    step; travel and path sum the walking steps only; the heading change crosses +-pi and unwraps; a fall
+    at walking step 2 is timed at 2 dt; energy skips the non-finite step; tactile counts walking steps."""
+    cfg, dt, n_settle = RolloutConfig(), 0.02, 2
+    step = jax.jit(lambda acc, i, qo, qn, fin, e, tac: accumulate(acc, cfg, i, n_settle, dt, qo, qn, fin, e, tac, 0.0))
+    poses = [_q(0.0, 0.0, 0.1, 3.0), _q(0.01, 0.0, 0.1, 3.1),  # settling
+             _q(0.04, 0.04, 0.1, -3.1),  # walk: (0.03, 0.04) and yaw 3.1 -> -3.1 (+0.083 rad through pi)
+             _q(0.04, 0.04, 0.02, -3.1),  # falls (torso 2 cm over the ground)
+             _q(0.04, 0.04, 0.02, -3.1)]  # non-finite step: state kept
+    acc = init_acc(jnp.array([0.0, 0.0, 3.0]))
+    tactile = jnp.array([True, False, False, False, False, True])
+    q_old = _q(0.0, 0.0, 0.1, 3.0)
+    for i, (q_new, fin, e) in enumerate(zip(poses, [True, True, True, True, False], [9.0, 9.0, 1.0, 2.0, 4.0])):
+        acc = step(acc, i, q_old, q_new, jnp.asarray(fin), jnp.float32(e), tactile)
+        q_old = q_new
+    a = jax.tree_util.tree_map(np.asarray, acc)
+    np.testing.assert_allclose(a["start_pose"], [0.01, 0.0, 3.1], atol=1e-6)
+    np.testing.assert_allclose(a["travel"], [0.03, 0.04, 2 * math.pi - 6.2], atol=1e-5)
+    assert a["path_length"] == pytest.approx(0.05, abs=1e-6)
+    assert a["energy"] == pytest.approx(3.0) and bool(a["nan"]) and bool(a["fell"])
+    assert a["fall_time"] == pytest.approx(2 * dt) and a["min_height"] == pytest.approx(0.02, abs=1e-7)
+    np.testing.assert_array_equal(a["tactile_steps"], [3, 0, 0, 0, 0, 3])
