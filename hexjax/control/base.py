@@ -1,5 +1,5 @@
 """The controller protocol: what the rollout, the Brax env and the tuners call on every hexjax controller
-(DESIGN.md, "Layers"; STYLE.md, "params vs state vs static").
+(docs/architecture.md).
 
 A controller is a frozen (hashable) dataclass deriving from `Controller`. Its fields are static
 configuration (the robot, the gait pattern, the hard or smooth form, the control period `dt`): changing one

@@ -117,13 +117,3 @@ def swing_path(start, end, height, s):
     s = jnp.asarray(s)[:, None]
     lin = start + (end - start) * 0.5 * (1.0 - jnp.cos(jnp.pi * s))
     return lin + jnp.array([0.0, 0.0, 1.0]) * height * jnp.sin(jnp.pi * s)
-
-
-def plan_step(body_xy, yaw, alpha, feet, group: int, p: MotionParams):
-    """One tripod step: group `group` supports while the other swings. feet (6, 2) world xy. Returns
-    (body target (2,), new feet (6, 2), body distance (), ok ())."""
-    sup, sw = TRIPODS[group], TRIPODS[1 - group]
-    target, d, ok_b = body_move(body_xy, yaw, alpha, feet[sup], jnp.asarray(sup), p)
-    new, _, ok_f = footholds(target, yaw, alpha, feet[sw], jnp.asarray(sw), p)
-    feet = feet.at[sw].set(jnp.where(ok_f, new, feet[sw]))
-    return target, feet, d, ok_b & ok_f
