@@ -16,7 +16,8 @@ setup: $(BIN)/hexjax
 demo: setup
 	$(BIN)/hexjax evaluate --gait tripod --distance 1.0 --batch 8 --json out/evaluate_tripod.json
 
-# two workers (one per core of the reference machine); the slowest 15 tests are listed at the end;
+# two workers (one per core of the reference machine), the slowest tests handed out first
+# (tests/conftest.py); the slowest 15 are listed at the end;
 # HEXJAX_REQUIRE_WARP: the test extra installs warp-lang, so its absence fails instead of skipping
 test: setup
 	HEXJAX_REQUIRE_WARP=1 $(BIN)/python -m pytest -q -n 2 --durations=15 tests

@@ -193,8 +193,10 @@ def test_elevator_reflex_reverses_leader_and_raises_clearance():
     z_foot = np.asarray(leg_fk(ROBOT, st.q_cmd[k:, RF]))[:, 2]
     assert z_foot.max() - z0 > 0.075  # regenerated clearance ~80 mm
     assert np.asarray(st.elev[k:, RF]).max() == pytest.approx(1.0)
-    off = CPGController(ROBOT, elevator=False)
-    st_off = _walk(off, p, 12.0, z0, wall_x=wall_x, wall_top=wall_top)
+    # without the reflex: the `elevator` param off, the same compiled program (the static flag only sets the
+    # default params)
+    assert float(CPGController(ROBOT, elevator=False).default_params().elevator) == 0.0
+    st_off = _walk(ctrl, p.replace(elevator=jnp.asarray(0.0)), 12.0, z0, wall_x=wall_x, wall_top=wall_top)
     assert np.asarray(st_off.n_elev).sum() == 0
     assert np.asarray(leg_fk(ROBOT, st_off.q_cmd[:, RF]))[:, 2].max() - z0 < 0.045
 
@@ -211,12 +213,12 @@ def test_smooth_form_tends_to_hard_form():
     wall_x = jnp.full(6, 10.0).at[1].set(0.5 * float(p.step_length) - 0.01)
     wall_top = jnp.full(6, -10.0).at[1].set(z0 + 0.04)
     q_hard = np.asarray(_walk(hard, p, 25.0, z0, _rf(-0.018), 3.0, wall_x=wall_x, wall_top=wall_top).q_cmd)
-    smooth = CPGController(ROBOT, smooth=True)
+    assert float(CPGController(ROBOT, smooth=True).default_params().smooth) == 1.0
     errs = []
-    for scale in (1.0, 1e-2, 1e-4, 1e-6):
-        ps = p.replace(temp_force=p.temp_force * scale, temp_phase=p.temp_phase * scale,
+    for scale in (1.0, 1e-2, 1e-4, 1e-6):  # the `smooth` param on: the same compiled program as the hard run
+        ps = p.replace(smooth=jnp.asarray(1.0), temp_force=p.temp_force * scale, temp_phase=p.temp_phase * scale,
                        temp_height=p.temp_height * scale)
-        q_s = np.asarray(_walk(smooth, ps, 25.0, z0, _rf(-0.018), 3.0, wall_x=wall_x, wall_top=wall_top).q_cmd)
+        q_s = np.asarray(_walk(hard, ps, 25.0, z0, _rf(-0.018), 3.0, wall_x=wall_x, wall_top=wall_top).q_cmd)
         errs.append(np.abs(q_s - q_hard).max())
     print("smooth-hard max |dq| per temperature scale 1, 1e-2, 1e-4, 1e-6:", errs)
     assert errs[-1] < 0.02, errs  # rad

@@ -119,7 +119,7 @@ def _tune_run(cfg):
     problem = Problem.build(cfg)
     terr, _ = problem.eval_batch()
     terr = jax.tree_util.tree_map(lambda x: x[:1], terr)
-    return rollout(problem.robot, terr, problem.eval_ctrl, problem.params0, 0.1, jax.random.PRNGKey(1), backend="c",
+    return rollout(problem.robot, terr, problem.eval_ctrl, problem.eval_params0, 0.1, jax.random.PRNGKey(1), backend="c",
                    nthread=1, physics=problem.physics(), config=TINY)
 
 

@@ -4,7 +4,6 @@ terms; tuning runs are deterministic and resume from their checkpoints; CMA-ES i
 import dataclasses
 import json
 import os
-import shutil
 
 import jax
 import jax.numpy as jnp
@@ -126,10 +125,11 @@ def _numbers(log):
 
 
 def test_tuning_is_deterministic_and_resumes(tmp_path):
+    """A 2-step run, extended from its checkpoint to 3 steps, logs exactly what a fresh 3-step run logs (so
+    the run is deterministic and resumes where it stopped); the params move inside their bounds; the returned
+    iterate is the best on the validation terrains; a checkpoint of another config is refused."""
     cfg = _small_config()
     a = tune(cfg, str(tmp_path / "a"), progress=False)
-    b = tune(cfg, str(tmp_path / "b"), progress=False)
-    assert _numbers(a["log"]) == _numbers(b["log"])
     assert a["log"][-1]["step"] == 2 and all(e["grad_finite"] for e in a["log"][1:])
     # the params moved, within their bounds; the returned iterate is the best on the validation terrains
     moved = a["last"]["params"]
@@ -140,9 +140,9 @@ def test_tuning_is_deterministic_and_resumes(tmp_path):
     assert os.path.exists(tmp_path / "a" / "tune.png") and os.path.exists(tmp_path / "a" / "log.json")
     # extend run a by one step from its checkpoint; it must match a fresh 3-step run
     c = tune(_small_config(steps=3), str(tmp_path / "a"), progress=False)
-    shutil.rmtree(tmp_path / "b")
     d = tune(_small_config(steps=3), str(tmp_path / "b"), progress=False)
     assert _numbers(c["log"]) == _numbers(d["log"]) and c["log"][-1]["step"] == 3
+    assert _numbers(c["log"])[:3] == _numbers(a["log"])
     with open(tmp_path / "a" / "log.json") as fh:
         assert json.load(fh)["log"][-1]["step"] == 3
     # a checkpoint from another config is refused, not silently continued

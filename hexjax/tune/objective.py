@@ -79,6 +79,7 @@ class Problem:
     train_ctrl: Any
     eval_ctrl: Any
     params0: Any
+    eval_params0: Any  # the same numbers for the hard form (the CPG's `smooth` param is 0 there)
     duration: float
     spec: Any
 
@@ -87,11 +88,11 @@ class Problem:
         cfg.validate()
         robot = get_robot(ROBOTS[cfg.controller])
         train_ctrl, params0, duration = _controller(cfg, robot, smooth=True)
-        eval_ctrl, _, _ = _controller(cfg, robot, smooth=False)
+        eval_ctrl, eval_params0, _ = _controller(cfg, robot, smooth=False)
         space = cfg.space()
         space.validate(params0)
         spec = get_terrain(cfg.terrain, length=cfg.distance + 0.3)
-        return cls(cfg, space, robot, train_ctrl, eval_ctrl, params0, duration, spec)
+        return cls(cfg, space, robot, train_ctrl, eval_ctrl, params0, eval_params0, duration, spec)
 
     # terrains: training batches are drawn fresh every step; held-out terrains come from another key
     def _keys(self):
@@ -165,7 +166,7 @@ def evaluate_held_out(problem: Problem, u, fn=None, model=None, which: str = "he
     if fn is None:
         model, fn = problem.eval_rollout()
     terr, keys = problem.eval_batch(which)
-    s = fn(model, problem.space.apply(u, problem.params0), terr, keys)
+    s = fn(model, problem.space.apply(u, problem.eval_params0), terr, keys)
     j = np.asarray(per_env_objective(s, problem.cfg.distance, problem.cfg.objective))
     dx, dy, da = (np.asarray(x) for x in travel_errors(s, problem.cfg.distance))
     err = np.hypot(dx, dy)

@@ -29,8 +29,8 @@ class CPGController(Controller):
     `default_params(**gait_fields("wave"))`); dt: control period, s (the
     network is integrated with one RK4 step per period); feedback: False runs the bare network and
     converter blind (no FSM, no reflexes); elevator / searching: enable each reflex (these three set the
-    default params of the same names, which the step reads: one program serves every variant); smooth: sigmoid gates
-    instead of step functions; search_periods: how many slowed leader periods a search lasts before the
+    default params of the same names, which the step reads: one program serves every variant); smooth: sigmoid
+    gates instead of step functions (likewise a param); search_periods: how many slowed leader periods a search lasts before the
     leg gives up (4 reach 50 mm below the AEP on `yu2019`; the first alone 21 mm); follower_reset: see
     `hexjax.control.cpg`. step_length, clearance (h_max), elevated_clearance (m) set the default params: 40 and
     80 mm are Sect. 6.1.1's; the paper gives no stride for its virtual model, 70 mm keeps neighbouring feet
@@ -80,7 +80,7 @@ class CPGController(Controller):
             raised_tolerance=jnp.asarray(0.015),
             temp_force=jnp.asarray(1.0), temp_phase=jnp.asarray(0.05), temp_height=jnp.asarray(0.002),
             feedback=jnp.asarray(float(self.feedback)), elevator=jnp.asarray(float(self.elevator)),
-            searching=jnp.asarray(float(self.searching)))
+            searching=jnp.asarray(float(self.searching)), smooth=jnp.asarray(float(self.smooth)))
 
     def validate_params(self, p: CPGParams) -> None:
         """Host-side checks on concrete params, before tracing; names the field and value."""
@@ -101,7 +101,7 @@ class CPGController(Controller):
             v = arr(f)
             if not np.all(np.isfinite(v)) or np.any(v < 0):
                 raise ValueError(f"cpg.{f}={v.tolist()!r}: must be finite and >= 0")
-        for f in ("feedback", "elevator", "searching"):
+        for f in ("feedback", "elevator", "searching", "smooth"):
             v = arr(f)
             if not np.all((v == 0) | (v == 1)):
                 raise ValueError(f"cpg.{f}={v.tolist()!r}: must be 0 (off) or 1 (on)")
@@ -131,11 +131,10 @@ class CPGController(Controller):
                         f"AEP/PEP/apex are out of reach of robot {self.robot.name!r}")
 
     # Gates ----------------------------------------------------------------------------------------
-    def _gate(self, x, temp):
-        """1 where x > 0: a step in the hard form, sigmoid(x / temp) in the smooth one."""
-        if self.smooth:
-            return jax.nn.sigmoid(x / temp)
-        return (x > 0).astype(x.dtype)
+    @staticmethod
+    def _gate(x, temp, smooth):
+        """1 where x > 0: a step in the hard form (`smooth` param 0), sigmoid(x / temp) in the smooth one (1)."""
+        return jnp.where(smooth > 0.5, jax.nn.sigmoid(x / temp), (x > 0).astype(x.dtype))
 
     # Network frequencies (Eqs. 12, 16) ----------------------------------------------------------------
     @staticmethod
@@ -186,7 +185,9 @@ class CPGController(Controller):
 
     # One control step ------------------------------------------------------------------------------
     def step(self, p: CPGParams, s: CPGState, obs) -> Tuple[CPGState, jax.Array]:
-        g = self._gate
+        def g(x, temp):
+            return self._gate(x, temp, p.smooth)
+
         tf, tp = p.temp_force, p.temp_phase
         lc = linear_converter(self.robot, p, self.stance_radial)
         z = s.z
@@ -350,7 +351,7 @@ class CPGController(Controller):
         hold = hold + end_st * (1.0 - hold)
         # A search period ends when the slowed leader is back at the AEP: search deeper, or give up.
         period = search * cross_fwd_end * (1.0 - srt)
-        more = self._gate(self.search_periods - 1.5 - search_n, tp)
+        more = g(self.search_periods - 1.5 - search_n, tp)
         search_n = search_n + period * more
         give_up = period * (1.0 - more)
         failed = failed + give_up * (1.0 - failed)
@@ -360,7 +361,7 @@ class CPGController(Controller):
         n_fail = n_fail + give_up
         q_search = search_output(p, lc, z, q_ref, search_n)
         # blind: the swing follows the leader's sign and the converter runs bare
-        swing_blind = (z[:, 0, 1] > 0).astype(jnp.float32) if not self.smooth else jax.nn.sigmoid(z[:, 0, 1] / tp)
+        swing_blind = g(z[:, 0, 1], tp)
         q_lc_blind = converter_output(p, lc, z, swing_blind, elev, offset, dq_level, searched)
         (hold_q, hold, q_ref, search_n, search, n_search, failed, n_fail, q_search, swing, q_lc) = pick(
             (hold_q, hold, q_ref, search_n, search, n_search, failed, n_fail, q_search, swing, q_lc),

@@ -39,8 +39,9 @@ class CPGParams:
     search_freq (3,): factors on omega_1..3 while searching, Eq. 12
     raised_tolerance () m: a touchdown this far above the stance feet is a raised foothold kept in stance
     temp_force () N, temp_phase (), temp_height () m: temperatures of the smooth gates (unused when hard)
-    feedback, elevator, searching (): 1 or 0, the sensory FSM and the two reflexes on or off (traced, so the
-    variants of an experiment share one compiled program)
+    feedback, elevator, searching, smooth (): 1 or 0, the sensory FSM and the two reflexes on or off, and the
+    smooth (sigmoid) or hard (step) form of every gate (traced, so the variants of an experiment share one
+    compiled program)
     """
 
     net: NetworkParams
@@ -65,6 +66,7 @@ class CPGParams:
     feedback: jax.Array
     elevator: jax.Array
     searching: jax.Array
+    smooth: jax.Array
 
 
 @struct.dataclass
