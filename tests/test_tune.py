@@ -12,6 +12,7 @@ import pytest
 
 from hexjax.control.cpg import CPGController
 from hexjax.control.tactile import TactileGaitController
+from hexjax.sim.compiled import arrays_digest
 from hexjax.sim.config import RolloutConfig, physics_for
 from hexjax.sim.rollout import rollout_function
 from hexjax.sim.step import Summary
@@ -29,9 +30,9 @@ GROUPS = {"gait": ["step_length", "step_height", "swing_time"],
           "overcoming": ["overcome_length", "overcome_height"], "threshold": ["tactile_threshold"]}
 
 
-def _cosines(obj, u0, groups, eps=1e-3):
+def _cosines(obj, u0, groups, static, eps=1e-3):
     """Per group: (cosine of the autodiff gradient of obj at u0 with central differences, autodiff, FD)."""
-    _, by_eps = check(obj, u0, groups, (eps,))
+    _, by_eps = check(obj, u0, groups, (eps,), static=static)
     res = by_eps[eps]
     for group, (_, a, b) in res.items():
         assert np.all(np.isfinite(a)) and np.linalg.norm(b) > 0, (group, a, b)
@@ -52,9 +53,10 @@ def test_gradient_matches_central_differences_per_group():
     spec = get_terrain("flat")
     terr = sample(spec, jax.random.PRNGKey(0), 4)
     keys = jax.random.split(jax.random.PRNGKey(1), 4)
-    model, fn = rollout_function(robot, ctrl, 0.4, physics=physics_for(spec.kind),
-                                 config=RolloutConfig(settle_time=0.1, reversible_solver=True))
-    res = _cosines(travel_objective(fn, model, space, p, terr, keys), space.init(p), GROUPS)
+    phys, rc = physics_for(spec.kind), RolloutConfig(settle_time=0.1, reversible_solver=True)
+    model, fn = rollout_function(robot, ctrl, 0.4, physics=phys, config=rc)
+    static = (robot, ctrl, phys, rc, 0.4, space, arrays_digest(p, terr, keys))
+    res = _cosines(travel_objective(fn, model, space, p, terr, keys), space.init(p), GROUPS, static)
     for group, (cos, a, b) in res.items():
         assert cos >= 0.9, f"{group}: cosine {cos:.3f}, autodiff {a}, central differences {b}"
 
@@ -78,12 +80,13 @@ def test_cpg_gradient_matches_central_differences():
     terr = sample(spec, jax.random.PRNGKey(0), 4)
     keys = jax.random.split(jax.random.PRNGKey(1), 4)
     phys = dataclasses.replace(physics_for(spec.kind), iterations=4)
-    model, fn = rollout_function(robot, ctrl, 0.4, physics=phys,
-                                 config=RolloutConfig(settle_time=0.1, reversible_solver=True))
+    rc = RolloutConfig(settle_time=0.1, reversible_solver=True)
+    model, fn = rollout_function(robot, ctrl, 0.4, physics=phys, config=rc)
     groups = {"converter": ["lc_trim", "clearance"], "contact thresholds": ["f_contact"],
               "elevator": ["elevated_clearance", "ramp_time"]}
     assert sorted(sum(groups.values(), [])) == sorted(space.names)
-    res = _cosines(travel_objective(fn, model, space, p, terr, keys), space.init(p), groups)
+    static = (robot, ctrl, phys, rc, 0.4, space, arrays_digest(p, terr, keys))
+    res = _cosines(travel_objective(fn, model, space, p, terr, keys), space.init(p), groups, static)
     for group, (cos, a, b) in res.items():
         print(group, f"cosine {cos:.3f} |autodiff| {np.linalg.norm(a):.3g} |FD| {np.linalg.norm(b):.3g}")
         assert cos >= 0.9, f"{group}: cosine {cos:.3f}, autodiff {a}, central differences {b}"

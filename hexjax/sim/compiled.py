@@ -47,6 +47,17 @@ def signature(args):
                        for x in leaves)
 
 
+def arrays_digest(*trees) -> str:
+    """A short hash of the arrays in `trees` (values, shapes, dtypes): for a `static` key of a function that
+    closes over arrays, which then are constants of its program."""
+    h = hashlib.sha256()
+    for x in jax.tree_util.tree_leaves(trees):
+        a = np.asarray(x)
+        h.update(f"{a.shape}{a.dtype}".encode())
+        h.update(a.tobytes())
+    return h.hexdigest()[:16]
+
+
 @functools.lru_cache(maxsize=1)
 def _environment() -> str:
     """The code, library versions, XLA flags and devices an executable depends on."""
@@ -157,7 +168,10 @@ class Compiled:
         if exe is None:
             exe, source = self.jitted.lower(*args).compile(), "compiled"
         self.executables[sig] = exe
-        return exe(*args), CompileStats(time.perf_counter() - t0, source)
+        # timed before the first call: on the GPU that call can block until the run ends (MJX's solver loops
+        # read their stopping test on the host), which is run time, not compile time
+        stats = CompileStats(time.perf_counter() - t0, source)
+        return exe(*args), stats
 
     def __call__(self, *args):
         return self.call(*args)[0]

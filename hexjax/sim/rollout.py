@@ -178,15 +178,16 @@ def rollout(robot: RobotSpec, terrain: Terrain, controller: Controller, params, 
 
 def rollout_function(robot: RobotSpec, controller: Controller, duration: float, *,
                      physics: PhysicsConfig = PhysicsConfig(), sensors: SensorConfig = SensorConfig(),
-                     config: RolloutConfig = RolloutConfig(), params_batched: bool = False):
+                     config: RolloutConfig = RolloutConfig(), params_batched: bool = False, kept: bool = False):
     """(model, fn) with fn(model, params, terrain, keys) -> Summary the pure jitted batched rollout, for use
     inside `jax.grad`, `jax.jit` or `vmap` (e.g. tuning controller params). keys: (B, 2) PRNG keys, one per
     env. Same checks as `rollout` on the static inputs. For reverse-mode gradients set
     `RolloutConfig.reversible_solver` (or use a physics config with `iterations=1`): MJX runs its Newton
-    iterations in a lax.while_loop, which JAX cannot reverse."""
+    iterations in a lax.while_loop, which JAX cannot reverse. kept=True: fn is the compiled program that
+    `rollout` runs, kept on disk (`hexjax.sim.compiled`), to call with arrays, not inside a transformation."""
     n_ctrl = _check_static(robot, controller, duration, physics, config)
     sm, fn = _compiled(robot, physics, sensors, controller, config, n_ctrl, params_batched)
-    return sm.mjx_model, fn.jitted
+    return sm.mjx_model, (fn if kept else fn.jitted)
 
 
 def make_mesh(devices=None) -> Mesh:

@@ -42,7 +42,7 @@ def tune_es(cfg: TuneConfig, out_dir: str, rollouts: int, resume: bool = True, p
         j = per_env_objective(s, cfg.distance, cfg.objective)
         return j.reshape(pop, B).mean(1)
 
-    pop_loss = cached(digest + "/pop", lambda: jax.jit(population_loss))
+    pop_loss = cached(digest + "/pop", lambda: jax.jit(population_loss), problem.static("es/pop", digest))
 
     def advance(state, gen):
         k_ask, k_tell = jax.random.split(jax.random.fold_in(key, gen))

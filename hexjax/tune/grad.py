@@ -45,7 +45,8 @@ def tune(cfg: TuneConfig, out_dir: str, resume: bool = True, progress: bool = Tr
     opt = make_optimizer(cfg)
     digest = config_digest(cfg, "grad")
     model, fn = problem.train_rollout(grad=True)
-    vg = cached(digest + "/vg", lambda: jax.jit(jax.value_and_grad(problem.loss_fn(fn, model), has_aux=True)))
+    vg = cached(digest + "/vg", lambda: jax.jit(jax.value_and_grad(problem.loss_fn(fn, model), has_aux=True)),
+                problem.static("grad/vg", digest))
 
     def advance(state, step):
         u, opt_state = state

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
-from typing import Callable, Dict, List, Mapping
+from typing import Callable, Dict, List, Mapping, Optional
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+from hexjax.sim.compiled import Compiled
 
 
 def central_differences(f: Callable, u0: Mapping[str, jax.Array], eps: float) -> Dict[str, np.ndarray]:
@@ -42,9 +44,15 @@ def travel_objective(fn, model, space, params, terrain, keys):
     return obj
 
 
-def check(obj: Callable, u0: Mapping[str, jax.Array], groups: Mapping[str, List[str]], eps=(1e-3,)):
+def check(obj: Callable, u0: Mapping[str, jax.Array], groups: Mapping[str, List[str]], eps=(1e-3,),
+          static: Optional[tuple] = None):
     """Per central-difference step in `eps`: {group: (cosine, autodiff vector, FD vector)}, with the jitted
-    autodiff gradient of `obj` at `u0` taken once. Returns (objective at u0, {eps: results})."""
-    value, grad = jax.jit(jax.value_and_grad(obj))(u0)
-    f = jax.jit(obj)
+    autodiff gradient of `obj` at `u0` taken once. Returns (objective at u0, {eps: results}).
+    static: what obj is made from (its arrays through `arrays_digest`), to keep its two compiled programs on
+    disk (`hexjax.sim.compiled`): a second run skips tracing them (20-40 s each on 2 cores)."""
+    vg, f = jax.jit(jax.value_and_grad(obj)), jax.jit(obj)
+    if static is not None:
+        vg = Compiled(vg, static=("gradcheck/value_and_grad",) + tuple(static))
+        f = Compiled(f, static=("gradcheck/value",) + tuple(static))
+    value, grad = vg(u0)
     return float(value), {e: group_cosines(grad, central_differences(f, u0, e), groups) for e in eps}

@@ -39,6 +39,7 @@ import numpy as np
 
 from hexjax.control.cpg import CPGController
 from hexjax.control.tactile import TactileGaitController
+from hexjax.sim.compiled import arrays_digest
 from hexjax.sim.config import PhysicsConfig, RolloutConfig, physics_for
 from hexjax.sim.rollout import rollout_function
 from hexjax.tune.config import TuneConfig
@@ -122,7 +123,15 @@ class Problem:
                                 config=rc, params_batched=params_batched)
 
     def eval_rollout(self):
-        return rollout_function(self.robot, self.eval_ctrl, self.duration, physics=self.physics())
+        """(model, fn) of the hard evaluation rollout, compiled once per machine (a kept program)."""
+        return rollout_function(self.robot, self.eval_ctrl, self.duration, physics=self.physics(), kept=True)
+
+    def static(self, role: str, digest: str) -> tuple:
+        """What a tuner's compiled function is made from, to key its kept program (`hexjax.sim.compiled`): the
+        config's digest, and the robot, controllers, physics and start params resolved from its preset names
+        (a preset file edited since changes the key)."""
+        return (role, digest, self.robot, self.train_ctrl, self.eval_ctrl, self.physics(),
+                arrays_digest(self.params0, self.eval_params0), self.duration)
 
     def physics(self) -> PhysicsConfig:
         """The terrain's physics, with `solver_iterations` Newton iterations where the config sets them;
