@@ -1,1 +1,0 @@
-"""Reinforcement learning on the same control step: a Brax environment and Brax PPO."""
