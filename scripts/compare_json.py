@@ -48,7 +48,7 @@ def walk(a, b, path, out):
 
 def main(argv) -> int:
     if len(argv) not in (2, 3):
-        print(__doc__.strip().splitlines()[2].strip(), file=sys.stderr)
+        print("usage: " + next(ln.strip() for ln in __doc__.splitlines() if "compare_json.py" in ln), file=sys.stderr)
         return 2
     a, b = (json.load(open(p)) for p in argv[:2])
     out = []

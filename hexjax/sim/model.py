@@ -121,6 +121,19 @@ class SimModel:
             raise RuntimeError("hexjax expects condim 3 on every contact pair")
         self.nefc = int(d._impl.efc_J.shape[0])
 
+    @functools.cached_property
+    def env_geoms(self):
+        """The jitted, vmapped per-env slot assignment of `batch_model`: terrain -> (geom_pos, geom_size) with a
+        leading batch axis. One program instead of a few hundred eager ops, each compiled on its own (3.5 s on
+        2 cores, again after every `jax.clear_caches`); made on first use, so building a model traces nothing."""
+        feet = jnp.asarray(neutral_feet_body(self.robot)[:, :2])
+
+        def one(t):
+            m = env_model(self, t, *assign_slots(self, t, feet, jnp.zeros(2)))
+            return m.geom_pos, m.geom_size
+
+        return jax.jit(jax.vmap(one))
+
     def make_data(self, batch: int = 1):
         """An empty mjx.Data. For 'warp' its contact pool is shared by the worlds of a vmap of size `batch`,
         so it is sized for all of them (the JAX implementation's fixed per-world contact count x batch)."""
@@ -232,26 +245,11 @@ def place_static_geoms(sm: SimModel, d, terrain: Terrain, slot_pos):
 def batch_model(sm: SimModel, terrain: Terrain):
     """Playground-style batching: (model with a leading batch axis on geom_pos / geom_size only,
     in_axes pytree for jax.vmap). Slots start at the boxes nearest the neutral stance at the origin."""
-    batched = _env_geoms(sm)(terrain)
+    geom_pos, geom_size = sm.env_geoms(terrain)
     in_axes = jax.tree_util.tree_map(lambda _: None, sm.mjx_model)
     in_axes = in_axes.replace(geom_pos=0, geom_size=0)
-    shared = sm.mjx_model.replace(geom_pos=batched[0], geom_size=batched[1])
+    shared = sm.mjx_model.replace(geom_pos=geom_pos, geom_size=geom_size)
     return shared, in_axes
-
-
-def _env_geoms(sm: SimModel):
-    """The jitted, vmapped per-env slot assignment of `batch_model`, one per SimModel. One program instead of
-    a few hundred eager ops, each compiled on its own (3.5 s on 2 cores, again after every `jax.clear_caches`)."""
-    fn = sm.__dict__.get("_env_geoms")
-    if fn is None:
-        feet = jnp.asarray(neutral_feet_body(sm.robot)[:, :2])
-
-        def one(t):
-            m = env_model(sm, t, *assign_slots(sm, t, feet, jnp.zeros(2)))
-            return m.geom_pos, m.geom_size
-
-        fn = sm.__dict__["_env_geoms"] = jax.jit(jax.vmap(one))
-    return fn
 
 
 def read_obs(sm: SimModel, sensors: SensorConfig, m, d) -> Obs:

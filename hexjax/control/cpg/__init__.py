@@ -9,7 +9,8 @@ prolong states (Table 2) keeps the legs in step. Tripod, tetrapod and wave gaits
 time-varying leader frequency of Eq. 16.
 
 Every discrete decision is written once as a gate in [0, 1] (`_gate`): a step function in the hard
-form, a sigmoid with a temperature in the smooth form (`CPGController.smooth`). The FSM state is kept
+form, a sigmoid with a temperature in the smooth form (the traced `smooth` param, whose default
+`CPGController(smooth=True)` sets, so both forms run in one program). The FSM state is kept
 as numbers in [0, 1] (swing, hold, search, ...) and updated by convex combinations, so in the hard form
 they stay 0 or 1 and the controller is the paper's switching system, while the smooth form is
 differentiable in every threshold.
