@@ -2,7 +2,7 @@
 finite-difference check? Prints the per-step-clipped autodiff gradient and central differences at several
 steps, for 32 envs over 0.5 s and 1 s. Usage: python scripts/fd_noise_tactile.py (about 4 min on 2 cores).
 It uses one Newton iteration, as gradients then required; that unconverged solver is what makes the
-differences disagree (docs/tuning.md). tests/test_tune.py does the check with RolloutConfig.reversible_solver."""
+differences disagree (docs/tuning.md). tests/test_tune.py does the check with RolloutConfig.solver_grad."""
 import dataclasses
 
 import jax

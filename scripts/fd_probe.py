@@ -79,7 +79,7 @@ terr = sample(spec, jax.random.PRNGKey(0), a.B)
 keys = jax.random.split(jax.random.PRNGKey(1), a.B)
 phys = dataclasses.replace(physics_for(spec.kind), iterations=a.iters)
 model, fn = rollout_function(robot, ctrl, a.window, physics=phys,
-                             config=RolloutConfig(settle_time=a.settle, reversible_solver=True))
+                             config=RolloutConfig(settle_time=a.settle, solver_grad="unrolled"))
 
 
 t0 = time.time()

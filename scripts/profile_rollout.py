@@ -140,7 +140,7 @@ def variant_profile(b: int, seconds: float, terrain: str, names):
     base = PhysicsConfig()
     variants = {
         "default": (base, RolloutConfig()),
-        "solver as fixed scan (no while_loop)": (base, RolloutConfig(reversible_solver=True)),
+        "solver as fixed scan (no while_loop)": (base, RolloutConfig(solver_grad="unrolled")),
         "torso_slots=0": (dataclasses.replace(base, torso_slots=0), RolloutConfig()),
         "slots_per_leg=1": (dataclasses.replace(base, slots_per_leg=1), RolloutConfig()),
         "iterations=1": (dataclasses.replace(base, iterations=1), RolloutConfig()),

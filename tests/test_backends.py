@@ -104,7 +104,7 @@ def test_backend_bad_input_raises_before_tracing():
         rollout(ROBOT, TERRAIN, CTRL, p, 1.0, jax.random.PRNGKey(0), backend="gpu")
     with pytest.raises(ValueError, match="forward only"):
         rollout(ROBOT, TERRAIN, CTRL, p, 1.0, jax.random.PRNGKey(0), backend="c",
-                config=RolloutConfig(reversible_solver=True))
+                config=RolloutConfig(solver_grad="unrolled"))
     with pytest.raises(ValueError, match="traces"):
         rollout(ROBOT, TERRAIN, CTRL, p, 1.0, jax.random.PRNGKey(0), backend="c", config=RolloutConfig(record=True))
     with pytest.raises(ValueError, match="nthread"):

@@ -12,7 +12,7 @@ import pytest
 
 from hexjax.control.cpg import CPGController
 from hexjax.control.tactile import TactileGaitController
-from hexjax.sim.compiled import arrays_digest
+from hexjax.sim.compiled import Compiled, arrays_digest
 from hexjax.sim.config import RolloutConfig, physics_for
 from hexjax.sim.rollout import rollout_function
 from hexjax.sim.step import Summary
@@ -53,7 +53,7 @@ def test_gradient_matches_central_differences_per_group():
     spec = get_terrain("flat")
     terr = sample(spec, jax.random.PRNGKey(0), 4)
     keys = jax.random.split(jax.random.PRNGKey(1), 4)
-    phys, rc = physics_for(spec.kind), RolloutConfig(settle_time=0.1, reversible_solver=True)
+    phys, rc = physics_for(spec.kind), RolloutConfig(settle_time=0.1, solver_grad="unrolled")
     model, fn = rollout_function(robot, ctrl, 0.4, physics=phys, config=rc)
     static = (robot, ctrl, phys, rc, 0.4, space, arrays_digest(p, terr, keys))
     res = _cosines(travel_objective(fn, model, space, p, terr, keys), space.init(p), GROUPS, static)
@@ -69,7 +69,8 @@ def test_cpg_gradient_matches_central_differences():
     and phase gates scaled with the network's rate (it runs 5x faster so that the window holds a lift-off,
     so temp_phase is 5x too). As the tactile check puts its threshold inside the gate's width, F_contact-x/y
     of 1 N inside a 3 N force gate lets the elevator fire in part at every swing on flat ground, so its
-    params act on the travel."""
+    params act on the travel. With the solver converged, the implicit backward (`solver_grad='implicit'`)
+    must give the same gradient as the unrolled one (cosine >= 0.99 per group) and pass the same check."""
     robot = yu2019()
     ctrl = CPGController(robot, smooth=True)
     p = ctrl.default_params()
@@ -80,16 +81,32 @@ def test_cpg_gradient_matches_central_differences():
     terr = sample(spec, jax.random.PRNGKey(0), 4)
     keys = jax.random.split(jax.random.PRNGKey(1), 4)
     phys = dataclasses.replace(physics_for(spec.kind), iterations=4)
-    rc = RolloutConfig(settle_time=0.1, reversible_solver=True)
+    rc = RolloutConfig(settle_time=0.1, solver_grad="unrolled")
     model, fn = rollout_function(robot, ctrl, 0.4, physics=phys, config=rc)
     groups = {"converter": ["lc_trim", "clearance"], "contact thresholds": ["f_contact"],
               "elevator": ["elevated_clearance", "ramp_time"]}
     assert sorted(sum(groups.values(), [])) == sorted(space.names)
     static = (robot, ctrl, phys, rc, 0.4, space, arrays_digest(p, terr, keys))
-    res = _cosines(travel_objective(fn, model, space, p, terr, keys), space.init(p), groups, static)
+    u0 = space.init(p)
+    res = _cosines(travel_objective(fn, model, space, p, terr, keys), u0, groups, static)
     for group, (cos, a, b) in res.items():
         print(group, f"cosine {cos:.3f} |autodiff| {np.linalg.norm(a):.3g} |FD| {np.linalg.norm(b):.3g}")
         assert cos >= 0.9, f"{group}: cosine {cos:.3f}, autodiff {a}, central differences {b}"
+    # the implicit backward through the constraint solve (hexjax.sim.implicit): with 4 iterations the solver
+    # has converged, so it must give the unrolled gradient (cosine >= 0.99) and match the same differences
+    rc_i = dataclasses.replace(rc, solver_grad="implicit")
+    model_i, fn_i = rollout_function(robot, ctrl, 0.4, physics=phys, config=rc_i)
+    g = Compiled(jax.jit(jax.grad(travel_objective(fn_i, model_i, space, p, terr, keys))),
+                 static=("test_tune/implicit_grad", robot, ctrl, phys, rc_i, 0.4, space, arrays_digest(p, terr, keys)))
+    grad_i = g(u0)
+    for group, names in groups.items():
+        gi = np.concatenate([np.ravel(np.asarray(grad_i[n])) for n in names])
+        _, a, b = res[group]
+        cos_u = gi @ a / (np.linalg.norm(gi) * np.linalg.norm(a) + 1e-30)
+        cos_fd = gi @ b / (np.linalg.norm(gi) * np.linalg.norm(b) + 1e-30)
+        print(group, f"implicit: cosine {cos_u:.4f} with unrolled, {cos_fd:.3f} with FD")
+        assert cos_u >= 0.99, f"{group}: implicit {gi} against unrolled {a}: cosine {cos_u:.4f}"
+        assert cos_fd >= 0.9, f"{group}: implicit {gi} against central differences {b}: cosine {cos_fd:.3f}"
 
 
 def _summary(travel, yaw0, fell, nan, energy):

@@ -165,10 +165,16 @@ def format_bench(res: Dict) -> str:
 
 # The command (configs/commands/bench.yaml) ---------------------------------------------------------------------
 def run(o, entry) -> Dict:
+    if o.grad:
+        from hexjax.experiments.bench_grad import bench_grad
+        return bench_grad(tune=o.tune, batches=o.batches, solver_grads=o.solver_grad, repeats=o.repeats)
     return bench(robot=o.robot, batches=o.batches, sim_seconds=o.seconds, terrains=o.terrains,
                  controller=",".join(o.controller), backend=",".join(o.backend), nthread=o.nthread,
                  devices=o.devices, repeats=o.repeats)
 
 
 def report(res: Dict) -> str:
+    if res.get("kind") == "grad":
+        from hexjax.experiments.bench_grad import format_bench_grad
+        return format_bench_grad(res)
     return format_bench(res)

@@ -48,6 +48,9 @@ class SensorConfig:
     tactile_threshold: float = 0.3  # N
 
 
+SOLVER_GRADS = ("none", "unrolled", "implicit")
+
+
 @dataclasses.dataclass(frozen=True)
 class RolloutConfig:
     """Static rollout settings (changing one recompiles)."""
@@ -69,16 +72,23 @@ class RolloutConfig:
     # Recompute each control step in the backward pass instead of storing its internals (jax.checkpoint):
     # memory per env and step drops from every substep's solver residuals to one mjx.Data.
     remat: bool = False
-    # Trace MJX's Newton iterations as a fixed-length scan (`hexjax.sim.model.reversible_solver`) so reverse
-    # mode works with physics.iterations > 1. Without it, gradients need iterations=1, and one unconverged
-    # Newton step makes the rollout non-smooth in the params (central differences flip sign with the step
-    # size; tests/test_tune.py).
-    reversible_solver: bool = False
+    # How reverse mode goes through MJX's constraint solve (forward values are the same for all three):
+    #   'none'      MJX's lax.while_loop, which JAX cannot reverse: gradients need physics.iterations == 1
+    #               (one unconverged Newton step makes the rollout non-smooth in the params: central
+    #               differences flip sign with the step size; tests/test_tune.py)
+    #   'unrolled'  the Newton iterations traced as a fixed-length scan (`hexjax.sim.model.reversible_solver`)
+    #               and differentiated step by step: the reference
+    #   'implicit'  the implicit function theorem at the solution (`hexjax.sim.implicit`): one linear solve
+    #               with the Newton Hessian per physics step in the backward pass; exact where the solver
+    #               has converged
+    solver_grad: str = "none"
     # Every this many control steps the compiled rollout reports its step index to the host (see
     # `progress_to`); 0: never. A host callback costs ~0.1 ms, so a few hundred calls are free.
     progress_every: int = 0
 
     def validate(self) -> None:
+        if self.solver_grad not in SOLVER_GRADS:
+            raise ValueError(f"rollout.solver_grad={self.solver_grad!r}: use one of {SOLVER_GRADS}")
         if not (isinstance(self.grad_window, int) and self.grad_window >= 0):
             raise ValueError(f"rollout.grad_window={self.grad_window!r}: must be an integer >= 0")
         if not (isinstance(self.progress_every, int) and self.progress_every >= 0):

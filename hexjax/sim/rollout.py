@@ -20,6 +20,7 @@ from hexjax.control.base import Controller
 from hexjax.sim.backends.mujoco_c import rollout_c
 from hexjax.sim.compiled import Compiled
 from hexjax.sim.config import PhysicsConfig, RolloutConfig, SensorConfig
+from hexjax.sim.implicit import REMAT_POLICY, implicit_solver
 from hexjax.sim.model import mjx, reversible_solver, sim_model
 from hexjax.sim.step import Summary, control_steps, end_pose, init_acc, make_control_step, settle_steps, substeps
 from hexjax.world.robot import RobotSpec
@@ -75,7 +76,9 @@ def _compiled(robot: RobotSpec, physics: PhysicsConfig, sensors: SensorConfig, c
         def body(carry, i):
             return control_step(carry, i, params, terrain, m_shared, ctrl0)
 
-        body = jax.checkpoint(body, prevent_cse=False) if cfg.remat else body
+        if cfg.remat:
+            policy = REMAT_POLICY if cfg.solver_grad == "implicit" else None
+            body = jax.checkpoint(body, prevent_cse=False, policy=policy)
         (d, cstate, acc), rec = jax.lax.scan(body, (d0, cstate0, acc0), jnp.arange(n_settle + n_ctrl))
         extra = {}
         if cfg.record:
@@ -86,8 +89,11 @@ def _compiled(robot: RobotSpec, physics: PhysicsConfig, sensors: SensorConfig, c
 
     def batched(m_shared, params, terrain, keys, d_template=None):
         run = jax.vmap(single, in_axes=(None, 0 if params_batched else None, 0, 0, None))
-        if cfg.reversible_solver:
+        if cfg.solver_grad == "unrolled":
             with reversible_solver(physics.iterations):
+                return run(m_shared, params, terrain, keys, d_template)
+        if cfg.solver_grad == "implicit":
+            with implicit_solver():
                 return run(m_shared, params, terrain, keys, d_template)
         return run(m_shared, params, terrain, keys, d_template)
 
@@ -133,10 +139,10 @@ def rollout(robot: RobotSpec, terrain: Terrain, controller: Controller, params, 
     n_ctrl = _check_static(robot, controller, duration, physics, config)
     if backend not in BACKENDS:
         raise ValueError(f"backend={backend!r}: use one of {BACKENDS}")
-    if backend != "mjx" and (config.reversible_solver or config.grad_window or config.grad_clip is not None
+    if backend != "mjx" and (config.solver_grad != "none" or config.grad_window or config.grad_clip is not None
                              or config.remat):
         raise ValueError(f"backend={backend!r} is forward only: the rollout config's gradient options "
-                         f"(reversible_solver, grad_window, grad_clip, remat) need backend='mjx'")
+                         f"(solver_grad, grad_window, grad_clip, remat) need backend='mjx'")
     if backend != "mjx" and mesh is not None:
         raise ValueError(f"backend={backend!r}: a device mesh is supported with backend='mjx' only")
     if not hasattr(terrain, "box_pos") or np.ndim(terrain.box_pos) != 3:
@@ -182,8 +188,8 @@ def rollout_function(robot: RobotSpec, controller: Controller, duration: float, 
     """(model, fn) with fn(model, params, terrain, keys) -> Summary the pure jitted batched rollout, for use
     inside `jax.grad`, `jax.jit` or `vmap` (e.g. tuning controller params). keys: (B, 2) PRNG keys, one per
     env. Same checks as `rollout` on the static inputs. For reverse-mode gradients set
-    `RolloutConfig.reversible_solver` (or use a physics config with `iterations=1`): MJX runs its Newton
-    iterations in a lax.while_loop, which JAX cannot reverse. kept=True: fn is the compiled program that
+    `RolloutConfig.solver_grad` to 'implicit' or 'unrolled' (or use a physics config with `iterations=1`):
+    MJX runs its Newton iterations in a lax.while_loop, which JAX cannot reverse. kept=True: fn is the compiled program that
     `rollout` runs, kept on disk (`hexjax.sim.compiled`), to call with arrays, not inside a transformation."""
     n_ctrl = _check_static(robot, controller, duration, physics, config)
     sm, fn = _compiled(robot, physics, sensors, controller, config, n_ctrl, params_batched)

@@ -33,6 +33,9 @@ class TuneConfig:
     # MJX Newton iterations of both the training and the evaluation physics (None: PhysicsConfig's 2). The
     # CPG on `yu2019` needs 4 for gradients that agree with finite differences (docs/tuning.md)
     solver_iterations: Optional[int] = None
+    # how the gradient goes through MJX's constraint solve (`RolloutConfig.solver_grad`): 'unrolled'
+    # differentiates every Newton iteration, 'implicit' one linear solve at the solution (docs/tuning.md)
+    solver_grad: str = "unrolled"
     params: Dict[str, Dict[str, float]] = dataclasses.field(default_factory=dict)
     optimizer: Dict[str, object] = dataclasses.field(default_factory=lambda: {"name": "adam", "learning_rate": 0.05})
     objective: Dict[str, float] = dataclasses.field(default_factory=lambda: {"dx": 1.0, "dy": 1.0})
@@ -62,6 +65,8 @@ class TuneConfig:
         it = self.solver_iterations
         if it is not None and not (isinstance(it, int) and not isinstance(it, bool) and 1 <= it <= 32):
             raise ValueError(f"tune.solver_iterations={it!r}: must be None or an integer in [1, 32]")
+        if self.solver_grad not in ("unrolled", "implicit"):
+            raise ValueError(f"tune.solver_grad={self.solver_grad!r}: use 'unrolled' or 'implicit'")
         for f in ("distance", "horizon", "window", "grad_clip", "temperature", "es_sigma"):
             v = getattr(self, f)
             if f == "temperature" and v is None:

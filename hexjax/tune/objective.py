@@ -12,7 +12,8 @@ term is the paper's goal error (its "relative error" times the distance).
 
 Two forms of the same rollout:
 - training ("smooth"): sigmoid gates (the tactile switch, the CPG's FSM), the same physics as evaluation
-  with MJX's Newton iterations traced as a scan (`RolloutConfig.reversible_solver`), a per-step bound on
+  with a reverse-mode path through MJX's constraint solve (`RolloutConfig.solver_grad`: its Newton iterations
+  traced as a scan, or implicit differentiation at the solution), a per-step bound on
   the backward flow through the physics (`RolloutConfig.grad_clip`), and truncated windows
   (`RolloutConfig.grad_window`): the gradient of the travel is the sum over windows of its gradient with
   the window's start state held fixed. The fall indicator has no pathwise gradient; it counts in the
@@ -118,7 +119,7 @@ class Problem:
         """(model, fn) of the smooth rollout; `grad` adds the truncation, bound and remat."""
         window = max(1, int(round(self.cfg.window / self.train_ctrl.dt)))
         rc = RolloutConfig(grad_clip=self.cfg.grad_clip, grad_window=window, remat=True,
-                           reversible_solver=True) if grad else RolloutConfig()
+                           solver_grad=self.cfg.solver_grad) if grad else RolloutConfig()
         return rollout_function(self.robot, self.train_ctrl, self.duration, physics=self.physics(),
                                 config=rc, params_batched=params_batched)
 

@@ -1,0 +1,112 @@
+"""`hexjax bench --grad`: the cost of a gradient against the forward rollout it differentiates.
+
+For one tuning config (configs/tune/*.yaml) and each batch size, times in one process
+- `forward`: the smooth training rollout and its objective, jitted (what a zeroth-order method like CMA-ES
+  pays per batch), and
+- `grad-<solver_grad>`: `jax.value_and_grad` of the same objective through the gradient rollout (truncated
+  windows, per-step bound, remat; `hexjax.tune.objective.Problem.train_rollout`) with each way through MJX's
+  constraint solve (`RolloutConfig.solver_grad`: 'unrolled' Newton iterations or 'implicit' differentiation),
+and reports env-steps/s, the gradient's rate as a share of the forward's, and both compile times.
+Compile times are what this process paid: with a warm compilation cache they are loads (set
+HEXJAX_CACHE_DIR=off to measure compiles).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import platform
+import time
+from typing import Dict, Sequence
+
+import jax
+import numpy as np
+from tqdm.auto import tqdm
+
+from hexjax.sim.config import RolloutConfig
+from hexjax.sim.step import control_steps, settle_steps, substeps
+from hexjax.tune.config import load_tune_config
+from hexjax.tune.objective import Problem
+
+SOLVER_GRADS = ("unrolled", "implicit")
+
+
+def _time(fn, args, repeats: int):
+    """(compile s, best call s, output) of jitted fn: lower + compile timed apart from the calls."""
+    t0 = time.perf_counter()
+    compiled = fn.lower(*args).compile()
+    compile_s = time.perf_counter() - t0
+    out = jax.block_until_ready(compiled(*args))
+    best = np.inf
+    for _ in range(max(repeats, 1)):
+        t0 = time.perf_counter()
+        out = jax.block_until_ready(compiled(*args))
+        best = min(best, time.perf_counter() - t0)
+    return compile_s, best, out
+
+
+def bench_grad(tune: str = "tactile_tripod", batches: Sequence[int] = (64,),
+               solver_grads: Sequence[str] = SOLVER_GRADS, repeats: int = 2, progress: bool = True) -> Dict:
+    """Rows per batch: forward, then value_and_grad for each of `solver_grads` (see the module docstring)."""
+    bad = [s for s in solver_grads if s not in SOLVER_GRADS]
+    if bad or not solver_grads:
+        raise ValueError(f"solver_grad={list(solver_grads)!r}: a comma list of {SOLVER_GRADS}")
+    for b in batches:
+        if not isinstance(b, int) or b < 1:
+            raise ValueError(f"batches entry {b!r}: must be an integer >= 1")
+    cfg = load_tune_config(tune)
+    problems = {s: Problem.build(dataclasses.replace(cfg, solver_grad=s)) for s in solver_grads}
+    base = problems[solver_grads[0]]
+    ctrl_dt = base.train_ctrl.dt
+    n_phys = ((settle_steps(RolloutConfig(), ctrl_dt) + control_steps(base.duration, ctrl_dt))
+              * substeps(base.physics(), ctrl_dt))
+    u0 = base.space.init(base.params0)
+    rows = []
+    jobs = [(b, m) for b in batches for m in ("forward",) + tuple(solver_grads)]
+    for b, mode in tqdm(jobs, desc="bench --grad", disable=not progress):
+        terr, keys = base.train_batch(0, b)
+        if mode == "forward":
+            model, fn = base.train_rollout(grad=False)
+            f = jax.jit(base.loss_fn(fn, model))
+        else:
+            p = problems[mode]
+            model, fn = p.train_rollout(grad=True)
+            f = jax.jit(jax.value_and_grad(p.loss_fn(fn, model), has_aux=True))
+        compile_s, run_s, out = _time(f, (u0, terr, keys), repeats)
+        row = dict(batch=b, mode=mode if mode == "forward" else f"grad-{mode}", compile_s=round(compile_s, 2),
+                   run_s=round(run_s, 4), env_steps_per_s=round(b * n_phys / run_s, 1))
+        if mode == "forward":
+            row["loss"] = float(out[0])
+        else:
+            (loss, _), g = out
+            flat = np.concatenate([np.ravel(np.asarray(x)) for x in jax.tree_util.tree_leaves(g)])
+            row.update(loss=float(loss), grad_norm=float(np.linalg.norm(flat)),
+                       grad_nonfinite=int(np.sum(~np.isfinite(flat))))
+            fwd = next(r for r in rows if r["batch"] == b and r["mode"] == "forward")
+            row["rate_vs_forward"] = round(row["env_steps_per_s"] / fwd["env_steps_per_s"], 4)
+            row["compile_vs_forward"] = round(compile_s / max(fwd["compile_s"], 1e-9), 2)
+        rows.append(row)
+        if progress:
+            tqdm.write(f"B={b} {row['mode']}: compile {compile_s:.1f} s, {row['env_steps_per_s']:.0f} env-steps/s"
+                       + (f", {100 * row['rate_vs_forward']:.1f} % of forward" if "rate_vs_forward" in row else ""))
+    dev = jax.devices()[0]
+    return dict(kind="grad", tune=tune, controller=cfg.controller, terrain=cfg.terrain, window_s=cfg.window,
+                duration_s=base.duration, physics_steps_per_env=n_phys,
+                solver_iterations=base.physics().iterations, backend=jax.default_backend(),
+                device=f"{dev.platform}:{getattr(dev, 'device_kind', '')}", host=platform.node(),
+                cpu_count=os.cpu_count(), jax=jax.__version__, date=time.strftime("%Y-%m-%d"), rows=rows)
+
+
+def format_bench_grad(res: Dict) -> str:
+    lines = [f"{res['device']} ({res['backend']}): value_and_grad of the {res['tune']} objective against its forward "
+             f"({res['duration_s']:.2f} s walk, {res['physics_steps_per_env']} physics steps per env, "
+             f"{res['window_s']} s windows, {res['solver_iterations']} Newton iterations)",
+             f"{'batch':>6} {'mode':<15} {'compile s':>9} {'x fwd':>6} {'env-steps/s':>12} {'% of fwd':>8} "
+             f"{'loss':>9} {'|grad|':>9} {'nonfinite':>9}"]
+    for r in res["rows"]:
+        pct = f"{100 * r['rate_vs_forward']:7.1f}%" if "rate_vs_forward" in r else ""
+        cx = f"{r['compile_vs_forward']:6.2f}" if "compile_vs_forward" in r else ""
+        gn = f"{r['grad_norm']:9.3g} {r['grad_nonfinite']:9d}" if "grad_norm" in r else ""
+        lines.append(f"{r['batch']:6d} {r['mode']:<15} {r['compile_s']:9.1f} {cx:>6} {r['env_steps_per_s']:12.0f} "
+                     f"{pct:>8} {r['loss']:9.4f} {gn}")
+    return "\n".join(lines)

@@ -1,0 +1,98 @@
+"""Implicit differentiation of MJX's constraint solve (`hexjax.sim.implicit`): same values as MJX, and where
+the solver has converged the same derivatives as differentiating its unrolled Newton iterations, which
+match central differences. The rollout-level checks (per parameter group, against central differences and
+against the unrolled path) are in tests/test_tune.py."""
+
+import dataclasses
+
+import jax
+import mujoco
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from hexjax.sim.config import RolloutConfig, physics_for
+from hexjax.sim.implicit import implicit_solve, implicit_solver
+from hexjax.sim.model import mjx, reversible_solver, sim_model
+from hexjax.world.presets import luneckas2020
+
+ITERATIONS = 30  # enough Newton iterations for the solve to converge on every step below
+
+
+@pytest.fixture(scope="module")
+def standing():
+    """(model, data) of the Luneckas 2020 robot after 0.5 s standing on flat ground: six feet in contact."""
+    phys = dataclasses.replace(physics_for("flat"), iterations=ITERATIONS)
+    sm = sim_model(luneckas2020(), phys)
+    m = sm.mjx_model
+    d = sm.init_data(jnp.zeros(3))
+    ctrl0 = jnp.asarray(sm.ctrl0)
+    d = d.replace(ctrl=ctrl0, qpos=d.qpos.at[7:].set(ctrl0))
+    d = jax.jit(lambda d: jax.lax.fori_loop(0, 100, lambda i, x: mjx.step(m, x), d))(d)
+    assert int(jnp.sum(d._impl.efc_force != 0)) >= 6, "expected the feet in contact"
+    return m, d
+
+
+def _walk(m, d, k: int):
+    """f(a): torso position and velocity after k physics steps with the servo targets swept by a * w sin(t)."""
+    w = jnp.asarray(np.random.RandomState(0).randn(m.nu).astype(np.float32))
+
+    def f(a):
+        def body(x, i):
+            x = x.replace(ctrl=d.ctrl + a * 0.3 * w * jnp.sin(0.05 * (i + 1)))
+            return mjx.step(m, x), None
+        x, _ = jax.lax.scan(body, d, jnp.arange(k))
+        return jnp.concatenate([x.qpos[:3], x.qvel[:3]])
+    return f
+
+
+def test_converged_jacobian_matches_unrolled_and_central_differences(standing):
+    """Five physics steps in contact: d(torso pose, velocity)/d(servo sweep) by the implicit backward equals
+    the unrolled one to 1e-3 and both match central differences; the forward values are bit-identical."""
+    m, d = standing
+    f = _walk(m, d, 5)
+    with reversible_solver(ITERATIONS):
+        j_unrolled = np.asarray(jax.jit(jax.jacrev(f))(1.0))
+    with implicit_solver():
+        j_implicit = np.asarray(jax.jit(jax.jacrev(f))(1.0))
+        v_implicit = np.asarray(jax.jit(f)(1.0))
+    fj = jax.jit(f)
+    v = np.asarray(fj(1.0))
+    np.testing.assert_array_equal(v_implicit, v)
+    fd = (np.asarray(fj(1.0 + 1e-3)) - np.asarray(fj(1.0 - 1e-3))) / 2e-3
+    scale = np.linalg.norm(j_unrolled)
+    assert scale > 1e-3, j_unrolled
+    assert np.linalg.norm(j_implicit - j_unrolled) <= 1e-3 * scale, (j_implicit, j_unrolled)
+    assert np.linalg.norm(j_implicit - fd) <= 0.05 * scale, (j_implicit, fd)
+
+
+def test_forces_and_acceleration_jacobian_against_unrolled(standing):
+    """One forward pass: the Jacobian of (qacc, qfrc_constraint, efc_force) with respect to the joint
+    velocities (which move the constraints' reference accelerations) and the controls."""
+    m, d = standing
+
+    def f(qvel, ctrl):
+        x = mjx.forward(m, d.replace(qvel=qvel, ctrl=ctrl))
+        return jnp.concatenate([x.qacc, x.qfrc_constraint, x._impl.efc_force])
+
+    jac = jax.jit(jax.jacrev(f, argnums=(0, 1)))
+    with reversible_solver(ITERATIONS):
+        ju = [np.asarray(x) for x in jac(d.qvel, d.ctrl)]
+    with implicit_solver():
+        ji = [np.asarray(x) for x in jac(d.qvel, d.ctrl)]
+    for a, b in zip(ji, ju):
+        assert np.linalg.norm(b) > 0
+        assert np.linalg.norm(a - b) <= 1e-3 * np.linalg.norm(b)
+
+
+def test_elliptic_cone_is_refused():
+    m = mjx.put_model(mujoco.MjModel.from_xml_string(
+        "<mujoco><option cone='elliptic'/><worldbody><geom type='plane' size='1 1 .1'/>"
+        "<body pos='0 0 .1'><freejoint/><geom type='sphere' size='.1'/></body></worldbody></mujoco>"))
+    with pytest.raises(ValueError, match="pyramidal"):
+        implicit_solve(m, mjx.make_data(m))
+
+
+def test_solver_grad_is_checked():
+    with pytest.raises(ValueError, match="rollout.solver_grad='newton'"):
+        RolloutConfig(solver_grad="newton").validate()
