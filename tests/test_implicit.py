@@ -6,14 +6,16 @@ against the unrolled path) are in tests/test_tune.py."""
 import dataclasses
 
 import jax
-import mujoco
 import jax.numpy as jnp
+import mujoco
 import numpy as np
 import pytest
 
-from hexjax.sim.config import RolloutConfig, physics_for
+from hexjax.control.gait import GaitController
+from hexjax.sim.config import PhysicsConfig, RolloutConfig, physics_for
 from hexjax.sim.implicit import implicit_solve, implicit_solver
 from hexjax.sim.model import mjx, reversible_solver, sim_model
+from hexjax.sim.rollout import rollout_function
 from hexjax.world.presets import luneckas2020
 
 ITERATIONS = 30  # enough Newton iterations for the solve to converge on every step below
@@ -93,6 +95,10 @@ def test_elliptic_cone_is_refused():
         implicit_solve(m, mjx.make_data(m))
 
 
-def test_solver_grad_is_checked():
+def test_solver_grad_is_checked_before_tracing():
     with pytest.raises(ValueError, match="rollout.solver_grad='newton'"):
         RolloutConfig(solver_grad="newton").validate()
+    robot = luneckas2020()
+    with pytest.raises(ValueError, match="physics.cone='elliptic'"):
+        rollout_function(robot, GaitController(robot), 0.1, config=RolloutConfig(solver_grad="implicit"),
+                         physics=dataclasses.replace(PhysicsConfig(), cone="elliptic"))

@@ -17,7 +17,7 @@ import dataclasses
 import os
 import platform
 import time
-from typing import Dict, Sequence
+from collections.abc import Sequence
 
 import jax
 import numpy as np
@@ -46,7 +46,7 @@ def _time(fn, args, repeats: int):
 
 
 def bench_grad(tune: str = "tactile_tripod", batches: Sequence[int] = (64,),
-               solver_grads: Sequence[str] = SOLVER_GRADS, repeats: int = 2, progress: bool = True) -> Dict:
+               solver_grads: Sequence[str] = SOLVER_GRADS, repeats: int = 2, progress: bool = True) -> dict:
     """Rows per batch: forward, then value_and_grad for each of `solver_grads` (see the module docstring)."""
     bad = [s for s in solver_grads if s not in SOLVER_GRADS]
     if bad or not solver_grads:
@@ -97,7 +97,7 @@ def bench_grad(tune: str = "tactile_tripod", batches: Sequence[int] = (64,),
                 cpu_count=os.cpu_count(), jax=jax.__version__, date=time.strftime("%Y-%m-%d"), rows=rows)
 
 
-def format_bench_grad(res: Dict) -> str:
+def format_bench_grad(res: dict) -> str:
     lines = [f"{res['device']} ({res['backend']}): value_and_grad of the {res['tune']} objective against its forward "
              f"({res['duration_s']:.2f} s walk, {res['physics_steps_per_env']} physics steps per env, "
              f"{res['window_s']} s windows, {res['solver_iterations']} Newton iterations)",

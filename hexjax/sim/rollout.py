@@ -111,6 +111,9 @@ def _check_static(robot: RobotSpec, controller, duration, physics: PhysicsConfig
                          "(the protocol the rollout calls)")
     if not (isinstance(duration, (int, float)) and math.isfinite(duration) and duration > 0):
         raise ValueError(f"duration={duration!r}: must be a finite number of seconds > 0")
+    if config.solver_grad == "implicit" and physics.cone != "pyramidal":
+        raise ValueError(f"physics.cone={physics.cone!r}: rollout.solver_grad='implicit' supports the "
+                         "pyramidal cone only (use solver_grad='unrolled')")
     substeps(physics, controller.dt)
     return control_steps(duration, controller.dt)
 
@@ -189,8 +192,9 @@ def rollout_function(robot: RobotSpec, controller: Controller, duration: float, 
     inside `jax.grad`, `jax.jit` or `vmap` (e.g. tuning controller params). keys: (B, 2) PRNG keys, one per
     env. Same checks as `rollout` on the static inputs. For reverse-mode gradients set
     `RolloutConfig.solver_grad` to 'implicit' or 'unrolled' (or use a physics config with `iterations=1`):
-    MJX runs its Newton iterations in a lax.while_loop, which JAX cannot reverse. kept=True: fn is the compiled program that
-    `rollout` runs, kept on disk (`hexjax.sim.compiled`), to call with arrays, not inside a transformation."""
+    MJX runs its Newton iterations in a lax.while_loop, which JAX cannot reverse. kept=True: fn is the
+    compiled program that `rollout` runs, kept on disk (`hexjax.sim.compiled`), to call with arrays, not
+    inside a transformation."""
     n_ctrl = _check_static(robot, controller, duration, physics, config)
     sm, fn = _compiled(robot, physics, sensors, controller, config, n_ctrl, params_batched)
     return sm.mjx_model, (fn if kept else fn.jitted)
