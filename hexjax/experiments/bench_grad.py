@@ -23,12 +23,10 @@ import jax
 import numpy as np
 from tqdm.auto import tqdm
 
-from hexjax.sim.config import RolloutConfig
+from hexjax.sim.config import GRAD_SOLVERS, RolloutConfig
 from hexjax.sim.step import control_steps, settle_steps, substeps
 from hexjax.tune.config import load_tune_config
 from hexjax.tune.objective import Problem
-
-SOLVER_GRADS = ("unrolled", "implicit")
 
 
 def _time(fn, args, repeats: int):
@@ -46,11 +44,11 @@ def _time(fn, args, repeats: int):
 
 
 def bench_grad(tune: str = "tactile_tripod", batches: Sequence[int] = (64,),
-               solver_grads: Sequence[str] = SOLVER_GRADS, repeats: int = 2, progress: bool = True) -> dict:
+               solver_grads: Sequence[str] = GRAD_SOLVERS, repeats: int = 2, progress: bool = True) -> dict:
     """Rows per batch: forward, then value_and_grad for each of `solver_grads` (see the module docstring)."""
-    bad = [s for s in solver_grads if s not in SOLVER_GRADS]
+    bad = [s for s in solver_grads if s not in GRAD_SOLVERS]
     if bad or not solver_grads:
-        raise ValueError(f"solver_grad={list(solver_grads)!r}: a comma list of {SOLVER_GRADS}")
+        raise ValueError(f"solver_grad={list(solver_grads)!r}: a comma list of {GRAD_SOLVERS}")
     for b in batches:
         if not isinstance(b, int) or b < 1:
             raise ValueError(f"batches entry {b!r}: must be an integer >= 1")
@@ -61,10 +59,11 @@ def bench_grad(tune: str = "tactile_tripod", batches: Sequence[int] = (64,),
     n_phys = ((settle_steps(RolloutConfig(), ctrl_dt) + control_steps(base.duration, ctrl_dt))
               * substeps(base.physics(), ctrl_dt))
     u0 = base.space.init(base.params0)
+    data = {b: base.train_batch(0, b) for b in batches}  # the same terrains and headings for every mode
     rows = []
     jobs = [(b, m) for b in batches for m in ("forward",) + tuple(solver_grads)]
     for b, mode in tqdm(jobs, desc="bench --grad", disable=not progress):
-        terr, keys = base.train_batch(0, b)
+        terr, keys = data[b]
         if mode == "forward":
             model, fn = base.train_rollout(grad=False)
             f = jax.jit(base.loss_fn(fn, model))

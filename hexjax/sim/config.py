@@ -48,7 +48,8 @@ class SensorConfig:
     tactile_threshold: float = 0.3  # N
 
 
-SOLVER_GRADS = ("none", "unrolled", "implicit")
+GRAD_SOLVERS = ("unrolled", "implicit")  # the values of RolloutConfig.solver_grad that reverse mode goes through
+SOLVER_GRADS = ("none",) + GRAD_SOLVERS
 
 
 @dataclasses.dataclass(frozen=True)

@@ -50,14 +50,13 @@ def _stop(tree):
     return jax.tree_util.tree_map(lambda x: jax.lax.stop_gradient(x) if isinstance(x, jax.Array) else x, tree)
 
 
-def implicit_solve(m, d, solve=None):
+def implicit_solve(m, d):
     """MJX's `solver.solve(m, d)` in value; its derivative by the implicit function theorem (module docstring).
     Pyramidal cone only (hexjax's physics; `PhysicsConfig.cone`)."""
     if m.opt.cone != ConeType.PYRAMIDAL:
         raise ValueError("RolloutConfig.solver_grad='implicit' supports the pyramidal friction cone only")
-    solve = solve or _MJX_SOLVE
     m_sg, d_sg = _stop(m), _stop(d)
-    out = solve(m_sg, d_sg)
+    out = _MJX_SOLVE(m_sg, d_sg)
     # named, so that a rematerialised step (`RolloutConfig.remat`, policy `REMAT_POLICY`) keeps the solution
     # and does not run the solver's iterations again in the backward pass
     a_star, frc, efc = (checkpoint_name(x, SOLUTION) for x in (out.qacc, out.qfrc_constraint, out._impl.efc_force))

@@ -4,6 +4,7 @@ MuJoCo Warp or MuJoCo C (`backend=`)."""
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import math
@@ -89,13 +90,11 @@ def _compiled(robot: RobotSpec, physics: PhysicsConfig, sensors: SensorConfig, c
 
     def batched(m_shared, params, terrain, keys, d_template=None):
         run = jax.vmap(single, in_axes=(None, 0 if params_batched else None, 0, 0, None))
-        if cfg.solver_grad == "unrolled":
-            with reversible_solver(physics.iterations):
-                return run(m_shared, params, terrain, keys, d_template)
-        if cfg.solver_grad == "implicit":
-            with implicit_solver():
-                return run(m_shared, params, terrain, keys, d_template)
-        return run(m_shared, params, terrain, keys, d_template)
+        # how MJX's constraint solve is traced (`RolloutConfig.solver_grad`)
+        solve = {"unrolled": lambda: reversible_solver(physics.iterations),
+                 "implicit": implicit_solver}.get(cfg.solver_grad, contextlib.nullcontext)
+        with solve():
+            return run(m_shared, params, terrain, keys, d_template)
 
     # a program with host callbacks (progress) or MuJoCo Warp's kernels does not export: keep none of it
     keep = impl == "jax" and not cfg.progress_every

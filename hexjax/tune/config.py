@@ -7,6 +7,7 @@ import dataclasses
 import math
 from typing import Dict, Optional
 
+from hexjax.sim.config import GRAD_SOLVERS
 from hexjax.tune.space import ParamSpace, make_space
 from hexjax.world.files import build, read_yaml, resolve
 
@@ -65,8 +66,8 @@ class TuneConfig:
         it = self.solver_iterations
         if it is not None and not (isinstance(it, int) and not isinstance(it, bool) and 1 <= it <= 32):
             raise ValueError(f"tune.solver_iterations={it!r}: must be None or an integer in [1, 32]")
-        if self.solver_grad not in ("unrolled", "implicit"):
-            raise ValueError(f"tune.solver_grad={self.solver_grad!r}: use 'unrolled' or 'implicit'")
+        if self.solver_grad not in GRAD_SOLVERS:
+            raise ValueError(f"tune.solver_grad={self.solver_grad!r}: use one of {GRAD_SOLVERS}")
         for f in ("distance", "horizon", "window", "grad_clip", "temperature", "es_sigma"):
             v = getattr(self, f)
             if f == "temperature" and v is None:
