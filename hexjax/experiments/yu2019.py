@@ -19,8 +19,9 @@ from tqdm.auto import tqdm
 
 from hexjax.control.cpg import MODE_NAMES, TRIPOD_GROUP, CPGController
 from hexjax.experiments.registry import experiment
-from hexjax.sim.config import RolloutConfig, physics_for
+from hexjax.sim.config import PhysicsConfig, RolloutConfig, physics_for
 from hexjax.sim.rollout import rollout
+from hexjax.tune.space import load_values, with_values
 from hexjax.world.presets import get_robot, get_terrain
 from hexjax.world.robot import LEG_NAMES, leg_fk
 from hexjax.world.terrain import sample
@@ -116,9 +117,12 @@ def _summarise(ctrl: CPGController, robot, s, terrain, kind: str, stumble_tilt: 
 
 
 def run_experiment(name: str, batch: int = 32, seed: int = 0, duration: Optional[float] = None,
-                   record: bool = True, progress: bool = True, preset: Optional[Mapping] = None) -> Dict:
+                   record: bool = True, progress: bool = True, preset: Optional[Mapping] = None,
+                   params: Optional[Mapping] = None, iterations: Optional[int] = None) -> Dict:
     """Runs every (terrain, variant) of experiment `name` (its preset: configs/experiments/<name>.yaml, or
-    `preset`) on `batch` randomised terrains (the same terrains for every variant). Returns {"config",
+    `preset`) on `batch` randomised terrains (the same terrains for every variant). `params` ({field: value},
+    e.g. a tuned result) replaces the paper's numbers in every variant; `iterations` sets MJX's Newton
+    iterations (default `PhysicsConfig`'s). Returns {"config",
     "results": {terrain: {variant: metrics}}, "_records"}; `_records` holds numpy traces of one env per row
     for plotting and is not JSON."""
     ex = dict(preset if preset is not None else experiment(name).preset)
@@ -128,11 +132,17 @@ def run_experiment(name: str, batch: int = 32, seed: int = 0, duration: Optional
     if not (math.isfinite(dur) and dur > 0):
         raise ValueError(f"duration={duration!r}: must be a finite number of seconds > 0")
     robot = get_robot(ex["robot"])
+    base = PhysicsConfig() if iterations is None else PhysicsConfig(iterations=iterations)
+    base.validate()
+    if params:
+        with_values(CPGController(robot).default_params(), params)  # a wrong name or shape fails here
     variants = list(ex["variants"].items())
     stumble_tilt = math.radians(ex["stumble_tilt_deg"])
     out = {"config": {"experiment": name, "robot": robot.name, "batch": batch, "seed": seed, "duration_s": dur,
                       "terrains": list(ex["terrains"]), "variants": [v for v, _ in variants],
-                      "stumble_tilt_deg": math.degrees(stumble_tilt)},
+                      "stumble_tilt_deg": math.degrees(stumble_tilt),
+                      "solver_iterations": base.iterations,
+                      "params": {k: np.asarray(v).tolist() for k, v in (params or {}).items()} or "the paper's"},
            "results": {}, "_records": {}}
     jobs = [(t, v, o or {}) for t in ex["terrains"] for v, o in variants]
     bar = tqdm(jobs, desc=name, disable=not progress)
@@ -142,9 +152,10 @@ def run_experiment(name: str, batch: int = 32, seed: int = 0, duration: Optional
         terrain = sample(spec, jax.random.PRNGKey(seed), batch)
         # the variant is params (feedback, elevator, searching): every row of a terrain shares one program
         ctrl = CPGController(robot)
-        params = ctrl.default_params(**{k: float(v) for k, v in overrides.items()})
+        p = with_values(ctrl.default_params(**{k: float(v) for k, v in overrides.items()}), params or {})
         t0 = time.perf_counter()
-        s, st = rollout(robot, terrain, ctrl, params, dur, jax.random.PRNGKey(seed + 1), physics=physics_for(spec.kind),
+        s, st = rollout(robot, terrain, ctrl, p, dur, jax.random.PRNGKey(seed + 1),
+                        physics=physics_for(spec.kind, base),
                         # the step's success needs foot traces
                         config=RolloutConfig(record=record or spec.kind == "step"),
                         stats=True)
@@ -222,7 +233,8 @@ def plot_experiment(res: Dict, path: str) -> None:
 # The experiments (configs/experiments/yu2019-step.yaml, yu2019-ditch.yaml) --------------------------------
 def run(o, entry) -> Dict:
     return run_experiment(entry.name, batch=o.batch, seed=o.seed, duration=o.duration, record=bool(o.png),
-                          preset=entry.preset)
+                          preset=entry.preset, params=load_values(o.params) if o.params else None,
+                          iterations=o.iterations)
 
 
 def report(res: Dict) -> str:

@@ -5,21 +5,26 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Dict, Optional
+from typing import Any, Dict, Optional, Tuple
 
 from hexjax.sim.config import GRAD_SOLVERS
 from hexjax.tune.space import ParamSpace, make_space
 from hexjax.world.files import build, read_yaml, resolve
+from hexjax.world.presets import get_terrain
 
 OBJECTIVE_TERMS = ("dx", "dy", "dalpha", "fall", "energy")
 OPTIMIZERS = ("adam", "sgd")
+ESTIMATORS = ("first_order", "hybrid")
 
 
 @dataclasses.dataclass(frozen=True)
 class TuneConfig:
     controller: str = "tactile"
     gait: str = "tripod"
-    terrain: str = "high-small"
+    # a terrain preset, or a list of them trained and judged together (each batch split evenly among them)
+    terrain: Any = "high-small"
+    # TerrainSpec keys set on every one of them (e.g. start_x: put the obstacles nearer for a short horizon)
+    terrain_overrides: Dict[str, Any] = dataclasses.field(default_factory=dict)
     max_obstacle_height: float = 0.05
     train_batch: int = 8
     held_out_batch: int = 16
@@ -37,6 +42,14 @@ class TuneConfig:
     # how the gradient goes through MJX's constraint solve (`RolloutConfig.solver_grad`): 'unrolled'
     # differentiates every Newton iteration, 'implicit' one linear solve at the solution (docs/tuning.md)
     solver_grad: str = "unrolled"
+    # the gradient estimator of `hexjax.tune.grad` (docs/tuning.md, "The hybrid estimator"): 'first_order'
+    # is the windowed pathwise gradient; 'hybrid' fits the whole walk's directional derivatives along
+    # `zo_pairs` antithetic perturbations per training terrain (N(0, zo_sigma^2) on the unconstrained scale),
+    # with the windowed gradient as a prior worth `zo_prior` pairs
+    estimator: str = "first_order"
+    zo_pairs: int = 8
+    zo_sigma: float = 0.5
+    zo_prior: float = 1.0
     params: Dict[str, Dict[str, float]] = dataclasses.field(default_factory=dict)
     optimizer: Dict[str, object] = dataclasses.field(default_factory=lambda: {"name": "adam", "learning_rate": 0.05})
     objective: Dict[str, float] = dataclasses.field(default_factory=lambda: {"dx": 1.0, "dy": 1.0})
@@ -45,12 +58,36 @@ class TuneConfig:
     seed: int = 0
     es_population: int = 8  # CMA-ES baseline: population size
     es_sigma: float = 0.5  # CMA-ES baseline: initial step size on the unconstrained scale
+    # the rollout CMA-ES scores: 'smooth' (the gradient's training objective) or 'hard' (the evaluated one; for
+    # a controller whose smooth form walks unlike its hard form, e.g. the CPG at Table 1's rate, docs/tuning.md)
+    es_objective: str = "smooth"
+
+    @property
+    def terrains(self) -> Tuple[str, ...]:
+        """The terrain presets trained and judged on (one or several)."""
+        return (self.terrain,) if isinstance(self.terrain, str) else tuple(self.terrain)
 
     def validate(self) -> None:
-        try:
-            resolve("terrains", self.terrain)
-        except ValueError as err:
-            raise ValueError(f"tune.terrain={self.terrain!r}: {err}") from None
+        t = self.terrain
+        if not (isinstance(t, str) or (isinstance(t, (list, tuple)) and t and all(isinstance(x, str) for x in t))):
+            raise ValueError(f"tune.terrain={t!r}: must be a terrain preset name or a non-empty list of them")
+        if len(set(self.terrains)) != len(self.terrains):
+            raise ValueError(f"tune.terrain={t!r}: a preset is listed twice")
+        for name in self.terrains:
+            try:
+                resolve("terrains", name)
+            except ValueError as err:
+                raise ValueError(f"tune.terrain={name!r}: {err}") from None
+        for f in ("train_batch", "held_out_batch", "validation_batch"):
+            if isinstance(getattr(self, f), int) and 0 < getattr(self, f) < len(self.terrains):
+                raise ValueError(f"tune.{f}={getattr(self, f)!r}: needs at least one env per terrain "
+                                 f"({len(self.terrains)} terrains)")
+        if self.es_objective not in ("smooth", "hard"):
+            raise ValueError(f"tune.es_objective={self.es_objective!r}: use 'smooth' or 'hard'")
+        if self.estimator not in ESTIMATORS:
+            raise ValueError(f"tune.estimator={self.estimator!r}: use one of {ESTIMATORS}")
+        if not (isinstance(self.zo_pairs, int) and not isinstance(self.zo_pairs, bool) and self.zo_pairs >= 1):
+            raise ValueError(f"tune.zo_pairs={self.zo_pairs!r}: must be an integer >= 1")
         if self.controller == "cpg" and self.gait not in ("tripod", "tetrapod", "wave"):
             raise ValueError(f"tune.gait={self.gait!r}: the cpg controller walks 'tripod', 'tetrapod' or 'wave'")
         if self.controller == "tactile" and self.gait not in ("tripod", "wave"):
@@ -68,7 +105,7 @@ class TuneConfig:
             raise ValueError(f"tune.solver_iterations={it!r}: must be None or an integer in [1, 32]")
         if self.solver_grad not in GRAD_SOLVERS:
             raise ValueError(f"tune.solver_grad={self.solver_grad!r}: use one of {GRAD_SOLVERS}")
-        for f in ("distance", "horizon", "window", "grad_clip", "temperature", "es_sigma"):
+        for f in ("distance", "horizon", "window", "grad_clip", "temperature", "es_sigma", "zo_sigma", "zo_prior"):
             v = getattr(self, f)
             if f == "temperature" and v is None:
                 continue
@@ -99,6 +136,16 @@ class TuneConfig:
         if not any(self.objective.values()):
             raise ValueError("tune.objective: every weight is 0, nothing to minimise")
         self.space()  # unknown controller, unknown parameter, min > max
+        for name in self.terrains:  # a wrong override (checked like the preset file's own keys)
+            try:
+                self.terrain_spec(name)
+            except ValueError as err:
+                raise ValueError(f"tune.terrain_overrides: {err}") from None
+
+    def terrain_spec(self, name: str):
+        """The TerrainSpec of preset `name` as this config trains on it: the corridor covers the walk, and
+        `terrain_overrides` apply."""
+        return get_terrain(name, **{"length": self.distance + 0.3, **self.terrain_overrides})
 
     def space(self) -> ParamSpace:
         return make_space(self.controller, overrides=self.params, only=list(self.params) or None)

@@ -37,6 +37,12 @@ def config_digest(cfg: TuneConfig, method: str) -> str:
     d = dataclasses.asdict(cfg)
     drop = ["steps", "eval_every"] + (["optimizer", "window", "grad_clip"] if method != "grad" else
                                       ["es_population", "es_sigma"])
+    if method != "grad" or cfg.estimator == "first_order":  # digests of configs older than the estimator hold
+        drop += ["estimator", "zo_pairs", "zo_sigma", "zo_prior"]
+    if not cfg.terrain_overrides:
+        drop.append("terrain_overrides")
+    if method == "grad" or cfg.es_objective == "smooth":
+        drop.append("es_objective")
     for k in drop:
         d.pop(k)
     return hashlib.sha256(json.dumps([method, d], sort_keys=True, default=str).encode()).hexdigest()[:16]
@@ -86,30 +92,48 @@ def drive(problem: Problem, out_dir: str, method: str, digest: str, state, param
     if resume and os.path.exists(ckpt):
         state, step, log = load_checkpoint(ckpt, state, digest)
         print(f"resumed from {ckpt} at step {step}")
+    # clocks: wall_s counts everything since the run began (a resumed run goes on from its log), eval_s the
+    # held-out and validation evaluations in it (their compile included); train_s = wall_s - eval_s is the
+    # method's own time, what `time_limit` bounds and what wall-time comparisons use
+    clock = {"t0": t_start - (log[-1]["wall_s"] if log else 0.0), "eval": log[-1].get("eval_s", 0.0) if log else 0.0}
+
+    def evaluate(u):
+        t = time.perf_counter()
+        out = _evaluate(problem, u, efn, em)
+        clock["eval"] += time.perf_counter() - t
+        return out
+
+    def times():
+        wall = time.perf_counter() - clock["t0"]
+        return {"wall_s": wall, "eval_s": clock["eval"], "train_s": wall - clock["eval"]}
+
     em, efn = problem.eval_rollout()
     bar = tqdm(total=n_steps, initial=step, desc=f"tune ({method})", unit="step", disable=not progress)
     if step == 0:
         u = params_of(state)
-        log.append({"step": 0, "rollouts": 0, "wall_s": 0.0, **_evaluate(problem, u, efn, em),
-                    "params": _jsonable(problem.space.physical(u))})
+        ev = evaluate(u)
+        log.append({"step": 0, "rollouts": 0, **times(), **ev, "params": _jsonable(problem.space.physical(u))})
     while step < n_steps:
-        if time_limit is not None and time.perf_counter() - t_start > time_limit:
+        if time_limit is not None and times()["train_s"] > time_limit:
             print(f"time limit {time_limit:.0f} s reached at step {step}")
             break
         state, fields = advance(state, step)
         step += 1
         u = params_of(state)
-        entry = {"step": step, "rollouts": step * rollouts_per_step, "wall_s": time.perf_counter() - t_start,
-                 **fields, "params": _jsonable(problem.space.physical(u))}
+        entry = {"step": step, "rollouts": step * rollouts_per_step, **fields,
+                 "params": _jsonable(problem.space.physical(u))}
         if should_eval(step) or step == n_steps:
-            entry.update(_evaluate(problem, u, efn, em))
+            entry.update(evaluate(u))
+        entry.update(times())
         log.append(entry)
         save_checkpoint(ckpt, state, step, log, digest)
-        bar.set_postfix(train=f"{fields['train_objective']:.3f}", held=f"{_last_held(log):.3f}")
+        bar.set_postfix(train=f"{fields['train_objective']:.3f}", held=f"{_last_held(log):.3f}",
+                        s=f"{entry['train_s']:.0f}")
         bar.update(1)
     bar.close()
     if "held_out" not in log[-1]:
-        log[-1].update(_evaluate(problem, params_of(state), efn, em))
+        log[-1].update(evaluate(params_of(state)))
+        log[-1].update(times())
         save_checkpoint(ckpt, state, step, log, digest)
     return _finish(problem, log, out_dir, method)
 

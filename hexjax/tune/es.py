@@ -17,8 +17,9 @@ from hexjax.tune.objective import Problem, per_env_objective
 
 def tune_es(cfg: TuneConfig, out_dir: str, rollouts: int, resume: bool = True, progress: bool = True,
             time_limit: Optional[float] = None) -> Dict[str, Any]:
-    """CMA-ES (evosax) on the same unconstrained params and the same smooth training objective, with the
-    same terrain stream: generation k evaluates every member of its population on the `train_batch`
+    """CMA-ES (evosax) on the same unconstrained params and the same smooth training objective (or, with
+    `es_objective: hard`, the hard form that evaluation uses: CMA-ES needs no gradient), with the same
+    terrain stream: generation k evaluates every member of its population on the `train_batch`
     terrains of step k. It stops after `rollouts` rollouts (population x train_batch per generation), so it
     can be given exactly the gradient run's budget. Its starting mean is the hand rules; its step size is
     `cfg.es_sigma` on the unconstrained scale. Held-out evaluations of the mean as for `tune`."""
@@ -30,13 +31,16 @@ def tune_es(cfg: TuneConfig, out_dir: str, rollouts: int, resume: bool = True, p
     es_params = es.default_params.replace(std_init=jnp.float32(cfg.es_sigma))
     key = jax.random.PRNGKey(cfg.seed + 7)
     digest = config_digest(cfg, f"es{pop}")
-    model, fn = problem.train_rollout(grad=False, params_batched=True)
+    hard = cfg.es_objective == "hard"
+    model, fn = (problem.hard_rollout(params_batched=True) if hard else
+                 problem.train_rollout(grad=False, params_batched=True))
+    start = problem.eval_params0 if hard else problem.params0
     B = cfg.train_batch
 
     # every member on the same terrains: params batched over pop x B envs
     def population_loss(pop_u, terr, keys):
         tile = lambda x: jnp.tile(x, (pop,) + (1,) * (x.ndim - 1))
-        flat_p = jax.vmap(lambda uu: problem.space.apply(uu, problem.params0))(pop_u)
+        flat_p = jax.vmap(lambda uu: problem.space.apply(uu, start))(pop_u)
         params = jax.tree_util.tree_map(lambda x: jnp.repeat(x, B, axis=0), flat_p)
         s = fn(model, params, jax.tree_util.tree_map(tile, terr), tile(keys))
         j = per_env_objective(s, cfg.distance, cfg.objective)

@@ -1,5 +1,6 @@
-"""Gradient tuning: Adam (or SGD) on windowed gradients of the smooth objective through MJX (optax), with
-the papers' hand rules as the start (docs/tuning.md, "Why truncated windows")."""
+"""Gradient tuning: Adam (or SGD) on windowed gradients of the smooth objective through MJX (optax), or on
+the hybrid estimate that corrects them by a zeroth-order term (`hexjax.tune.hybrid`), with the papers' hand
+rules as the start (docs/tuning.md, "Why truncated windows")."""
 
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ import optax
 
 from hexjax.tune.config import TuneConfig
 from hexjax.tune.driver import all_finite, cached, config_digest, drive
+from hexjax.tune.hybrid import hybrid_value_and_grad
 from hexjax.tune.objective import Problem
 
 
@@ -44,14 +46,24 @@ def tune(cfg: TuneConfig, out_dir: str, resume: bool = True, progress: bool = Tr
     u0 = problem.space.init(problem.params0)
     opt = make_optimizer(cfg)
     digest = config_digest(cfg, "grad")
-    model, fn = problem.train_rollout(grad=True)
-    vg = cached(digest + "/vg", lambda: jax.jit(jax.value_and_grad(problem.loss_fn(fn, model), has_aux=True)),
-                problem.static("grad/vg", digest))
+    if cfg.estimator == "hybrid":
+        est = hybrid_value_and_grad(problem, problem.train_rollout(grad=True, params_batched=True),
+                                    problem.train_rollout(grad=False, params_batched=True))
+        vg = cached(digest + "/hybrid", lambda: jax.jit(est), problem.static("grad/hybrid", digest))
+        zo_key = jax.random.PRNGKey(cfg.seed + 11)
+        per_step = cfg.train_batch * (1 + 2 * cfg.zo_pairs)
+    else:
+        model, fn = problem.train_rollout(grad=True)
+        loss_vg = cached(digest + "/vg", lambda: jax.jit(jax.value_and_grad(problem.loss_fn(fn, model), has_aux=True)),
+                         problem.static("grad/vg", digest))
+        vg = lambda u, terr, keys, key: loss_vg(u, terr, keys)
+        zo_key, per_step = None, cfg.train_batch
 
     def advance(state, step):
         u, opt_state = state
         terr, keys = problem.train_batch(step)
-        (loss, _), g = vg(u, terr, keys)
+        key = None if zo_key is None else jax.random.fold_in(zo_key, step)
+        (loss, _), g = vg(u, terr, keys, key)
         ok = all_finite(g) and math.isfinite(float(loss))
         if ok:
             upd, opt_state = opt.update(g, opt_state, u)
@@ -59,5 +71,6 @@ def tune(cfg: TuneConfig, out_dir: str, resume: bool = True, progress: bool = Tr
         return (u, opt_state), {"train_objective": float(loss), "grad_finite": ok,
                                 "grad_norm": float(optax.global_norm(g)) if ok else None}
 
-    return drive(problem, out_dir, "grad", digest, (u0, opt.init(u0)), lambda st: st[0], advance, cfg.steps,
-                  cfg.train_batch, lambda step: step % cfg.eval_every == 0, resume, progress, time_limit, t_start)
+    return drive(problem, out_dir, cfg.estimator.replace("first_order", "grad"), digest, (u0, opt.init(u0)),
+                  lambda st: st[0], advance, cfg.steps, per_step, lambda step: step % cfg.eval_every == 0, resume,
+                  progress, time_limit, t_start)

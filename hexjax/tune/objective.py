@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any, Dict, Optional
+from typing import Any, Dict, Optional, Tuple
 
 import jax
 import jax.numpy as jnp
@@ -45,7 +45,7 @@ from hexjax.sim.config import PhysicsConfig, RolloutConfig, physics_for
 from hexjax.sim.rollout import rollout_function
 from hexjax.tune.config import TuneConfig
 from hexjax.tune.space import ParamSpace
-from hexjax.world.presets import get_robot, get_terrain
+from hexjax.world.presets import get_robot
 from hexjax.world.terrain import pad_terrain, sample
 
 ROBOTS = {"tactile": "luneckas2020", "cpg": "yu2019"}
@@ -83,7 +83,7 @@ class Problem:
     params0: Any
     eval_params0: Any  # the same numbers for the hard form (the CPG's `smooth` param is 0 there)
     duration: float
-    spec: Any
+    specs: Tuple[Any, ...]  # the terrain families (`TuneConfig.terrain`), each batch split evenly among them
 
     @classmethod
     def build(cls, cfg: TuneConfig) -> "Problem":
@@ -93,27 +93,36 @@ class Problem:
         eval_ctrl, eval_params0, _ = _controller(cfg, robot, smooth=False)
         space = cfg.space()
         space.validate(params0)
-        spec = get_terrain(cfg.terrain, length=cfg.distance + 0.3)
-        return cls(cfg, space, robot, train_ctrl, eval_ctrl, params0, eval_params0, duration, spec)
+        specs = tuple(cfg.terrain_spec(t) for t in cfg.terrains)
+        return cls(cfg, space, robot, train_ctrl, eval_ctrl, params0, eval_params0, duration, specs)
 
     # terrains: training batches are drawn fresh every step; held-out terrains come from another key
     def _keys(self):
         root = jax.random.PRNGKey(self.cfg.seed)
         return jax.random.split(root, 4)  # train terrains, train headings, held-out, validation
 
+    def terrain_batch(self, key, n: int):
+        """n terrains from `key`, split evenly among the config's families (the first ones get the remainder)
+        and padded to one box count; one family draws all n from `key` itself."""
+        m = max(s.max_boxes for s in self.specs)
+        if len(self.specs) == 1:
+            return pad_terrain(sample(self.specs[0], key, n), m)
+        k = len(self.specs)
+        parts = [pad_terrain(sample(s, jax.random.fold_in(key, i), n // k + (i < n % k)), m)
+                 for i, s in enumerate(self.specs)]
+        return jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs), *parts)
+
     def train_batch(self, step: int, n: Optional[int] = None):
         k_t, k_h = self._keys()[:2]
         n = n or self.cfg.train_batch
-        terr = pad_terrain(sample(self.spec, jax.random.fold_in(k_t, step), n), self.spec.max_boxes)
-        return terr, jax.random.split(jax.random.fold_in(k_h, step), n)
+        return self.terrain_batch(jax.random.fold_in(k_t, step), n), jax.random.split(jax.random.fold_in(k_h, step), n)
 
     def eval_batch(self, which: str = "held_out"):
         """The fixed terrains of the held-out test set (judges the tuning) or of the validation set (picks
         which iterate a run returns); neither is ever trained on."""
         k_e = self._keys()[2 if which == "held_out" else 3]
         n = self.cfg.held_out_batch if which == "held_out" else self.cfg.validation_batch
-        terr = pad_terrain(sample(self.spec, k_e, n), self.spec.max_boxes)
-        return terr, jax.random.split(jax.random.fold_in(k_e, 1), n)
+        return self.terrain_batch(k_e, n), jax.random.split(jax.random.fold_in(k_e, 1), n)
 
     def train_rollout(self, grad: bool, params_batched: bool = False):
         """(model, fn) of the smooth rollout; `grad` adds the truncation, bound and remat."""
@@ -122,6 +131,12 @@ class Problem:
                            solver_grad=self.cfg.solver_grad) if grad else RolloutConfig()
         return rollout_function(self.robot, self.train_ctrl, self.duration, physics=self.physics(),
                                 config=rc, params_batched=params_batched)
+
+    def hard_rollout(self, params_batched: bool = False):
+        """(model, fn) of the hard form as a pure jitted function (for CMA-ES on the evaluated objective,
+        `TuneConfig.es_objective: hard`); use with `eval_params0`."""
+        return rollout_function(self.robot, self.eval_ctrl, self.duration, physics=self.physics(),
+                                params_batched=params_batched)
 
     def eval_rollout(self):
         """(model, fn) of the hard evaluation rollout, compiled once per machine (a kept program)."""
@@ -140,7 +155,8 @@ class Problem:
         base = PhysicsConfig()
         if self.cfg.solver_iterations is not None:
             base = dataclasses.replace(base, iterations=self.cfg.solver_iterations)
-        return physics_for(self.spec.kind, base)
+        kinds = {s.kind for s in self.specs}
+        return physics_for(kinds.pop() if len(kinds) == 1 else "mixed", base)
 
     def loss_fn(self, fn, model):
         """loss(u, terrain, keys) -> (mean J, per-env J) for unconstrained params u."""

@@ -82,6 +82,36 @@ def _has(obj, path: str) -> bool:
         return False
 
 
+def with_values(params, values: Mapping[str, Any], source: str = "params"):
+    """`params` with the fields named in `values` (dotted names, as in a tuning log's "params") set to those
+    numbers, each checked for existence, shape and finiteness first; raises one ValueError line naming the
+    field."""
+    for name, v in values.items():
+        if not _has(params, name):
+            raise ValueError(f"{source}: {name}: unknown parameter for this controller")
+        old = jnp.asarray(_get(params, name))
+        new = np.asarray(v, dtype=float)
+        if new.shape != old.shape or not np.all(np.isfinite(new)):
+            raise ValueError(f"{source}: {name}={new.tolist()!r}: must be finite with shape {old.shape}")
+        params = _set(params, name, jnp.asarray(new, old.dtype))
+    return params
+
+
+def load_values(path: str) -> Dict[str, Any]:
+    """Param values from a JSON file: a `hexjax tune` log.json (its picked iterate, "final") or a plain
+    {name: value} mapping."""
+    import json
+    try:
+        with open(path) as f:
+            d = json.load(f)
+    except (OSError, ValueError) as err:
+        raise ValueError(f"params={path!r}: cannot read it as JSON ({err})") from None
+    d = d.get("final", {}).get("params", d) if isinstance(d, dict) else d
+    if not isinstance(d, dict) or not d:
+        raise ValueError(f"params={path!r}: expected a tuning log.json or a mapping of param names to values")
+    return d
+
+
 @dataclasses.dataclass(frozen=True)
 class ParamSpace:
     """A set of bounded fields of one controller's params pytree. `bounds`: ((path, Bound), ...)."""
