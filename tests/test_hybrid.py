@@ -128,6 +128,8 @@ def test_tuned_values_load_from_a_log_and_are_checked(tmp_path):
         with_values(p0, {"f_contact": [1.0, 2.0]})
     with pytest.raises(ValueError, match="f_contactt: unknown parameter"):
         with_values(p0, {"f_contactt": 1.0})
+    with pytest.raises(ValueError, match="clearance='high': must be a number"):
+        with_values(p0, {"clearance": "high"})
     (tmp_path / "bad.json").write_text("[1, 2]")
     with pytest.raises(ValueError, match="expected a tuning log.json or a mapping"):
         load_values(str(tmp_path / "bad.json"))

@@ -115,7 +115,8 @@ class Problem:
     def train_batch(self, step: int, n: Optional[int] = None):
         k_t, k_h = self._keys()[:2]
         n = n or self.cfg.train_batch
-        return self.terrain_batch(jax.random.fold_in(k_t, step), n), jax.random.split(jax.random.fold_in(k_h, step), n)
+        keys = jax.random.split(jax.random.fold_in(k_h, step), n)
+        return self.terrain_batch(jax.random.fold_in(k_t, step), n), keys
 
     def eval_batch(self, which: str = "held_out"):
         """The fixed terrains of the held-out test set (judges the tuning) or of the validation set (picks

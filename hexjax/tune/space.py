@@ -90,7 +90,10 @@ def with_values(params, values: Mapping[str, Any], source: str = "params"):
         if not _has(params, name):
             raise ValueError(f"{source}: {name}: unknown parameter for this controller")
         old = jnp.asarray(_get(params, name))
-        new = np.asarray(v, dtype=float)
+        try:
+            new = np.asarray(v, dtype=float)
+        except (TypeError, ValueError):
+            raise ValueError(f"{source}: {name}={v!r}: must be a number or an array of numbers") from None
         if new.shape != old.shape or not np.all(np.isfinite(new)):
             raise ValueError(f"{source}: {name}={new.tolist()!r}: must be finite with shape {old.shape}")
         params = _set(params, name, jnp.asarray(new, old.dtype))
