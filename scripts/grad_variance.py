@@ -26,13 +26,11 @@ import os
 import time
 
 import jax
-import jax.flatten_util
-import jax.numpy as jnp
 import numpy as np
 
 from hexjax.tune.config import load_tune_config
-from hexjax.tune.hybrid import combine, per_env_estimates
-from hexjax.tune.objective import Problem, per_env_objective
+from hexjax.tune.hybrid import combine, per_env_estimates, per_env_gradients
+from hexjax.tune.objective import Problem
 
 ap = argparse.ArgumentParser()
 ap.add_argument("--config", default="tactile_tripod", help="tuning config name or .yaml path")
@@ -65,16 +63,8 @@ elif a.pairs:
     j, G, EPS, D = (np.asarray(x) for x in jax.jit(est)(u0, terr, keys, jax.random.PRNGKey(a.seed)))
 else:
     terr, keys = problem.train_batch(10_000 + a.seed, n=a.n)
-    model, fn = problem.train_rollout(grad=True, params_batched=True)
-    flat0, unravel = jax.flatten_util.ravel_pytree(u0)
-
-    def total(fb):
-        params = jax.vmap(lambda f: problem.space.apply(unravel(f), problem.params0))(fb)
-        jj = per_env_objective(fn(model, params, terr, keys), cfg.distance, cfg.objective)
-        return jnp.sum(jj), jj
-
-    (_, j), G = jax.jit(jax.value_and_grad(total, has_aux=True))(jnp.broadcast_to(flat0, (a.n, flat0.size)))
-    j, G = np.asarray(j), np.asarray(G)
+    grads = per_env_gradients(problem, problem.train_rollout(grad=True, params_batched=True))
+    j, G = (np.asarray(x) for x in jax.jit(grads)(u0, terr, keys))
 wall = time.perf_counter() - t0
 # the flat order of ravel_pytree: the dict's sorted keys, each array flattened
 labels = [f"{n}[{i}]" if np.size(u0[n]) > 1 else n for n in sorted(u0) for i in range(np.size(u0[n]))]

@@ -21,6 +21,7 @@ from collections.abc import Sequence
 
 import jax
 import numpy as np
+from jax.flatten_util import ravel_pytree
 from tqdm.auto import tqdm
 
 from hexjax.sim.config import GRAD_SOLVERS, RolloutConfig
@@ -78,7 +79,7 @@ def bench_grad(tune: str = "tactile_tripod", batches: Sequence[int] = (64,),
             row["loss"] = float(out[0])
         else:
             (loss, _), g = out
-            flat = np.concatenate([np.ravel(np.asarray(x)) for x in jax.tree_util.tree_leaves(g)])
+            flat = np.asarray(ravel_pytree(g)[0])
             row.update(loss=float(loss), grad_norm=float(np.linalg.norm(flat)),
                        grad_nonfinite=int(np.sum(~np.isfinite(flat))))
             fwd = next(r for r in rows if r["batch"] == b and r["mode"] == "forward")

@@ -39,30 +39,46 @@ from jax.flatten_util import ravel_pytree
 from hexjax.tune.objective import Problem, per_env_objective
 
 
+def _objective(problem: Problem, rollout, flat_u, unravel, terrain, keys):
+    """J per env (B,) of `rollout` ((model, fn), params batched) with env e at the flat params flat_u[e]."""
+    model, fn = rollout
+    params = jax.vmap(lambda f: problem.space.apply(unravel(f), problem.params0))(flat_u)
+    return per_env_objective(fn(model, params, terrain, keys), problem.cfg.distance, problem.cfg.objective)
+
+
+def per_env_gradients(problem: Problem, grad_rollout) -> Callable:
+    """f(u, terrain, keys) -> (J (B,), g (B, P)): per training env the smooth objective and its windowed
+    gradient, flattened in `ravel_pytree(u)`'s order. `grad_rollout` is (model, fn) of
+    `Problem.train_rollout(grad=True, params_batched=True)`: every env has its own copy of u, so one backward
+    pass of sum_e J_e gives every dJ_e/du_e."""
+    def f(u, terrain, keys):
+        flat, unravel = ravel_pytree(u)
+        fb = jnp.broadcast_to(flat, (keys.shape[0], flat.shape[0]))
+        total = lambda fb: (lambda j: (jnp.sum(j), j))(_objective(problem, grad_rollout, fb, unravel, terrain, keys))
+        (_, j), g = jax.value_and_grad(total, has_aux=True)(fb)
+        return j, g
+
+    return f
+
+
 def per_env_estimates(problem: Problem, grad_rollout, fwd_rollout, pairs: int, sigma: float) -> Callable:
     """f(u, terrain, keys, key) -> (J (B,), g (B, P), eps (B, K, P), d (B, K)): per training env the smooth
-    objective, its windowed gradient (flattened in `ravel_pytree(u)`'s order), the K = `pairs` perturbation
-    directions and the whole walk's directional derivatives along them. `grad_rollout` and `fwd_rollout` are
-    (model, fn) of `Problem.train_rollout(grad=True / False, params_batched=True)`."""
-    (gm, gfn), (fm, ffn) = grad_rollout, fwd_rollout
-    cfg = problem.cfg
-
-    def objective(fn, model, flat_u, unravel, terrain, keys):
-        params = jax.vmap(lambda f: problem.space.apply(unravel(f), problem.params0))(flat_u)
-        return per_env_objective(fn(model, params, terrain, keys), cfg.distance, cfg.objective)
+    objective, its windowed gradient (`per_env_gradients`), the K = `pairs` perturbation directions and the
+    whole walk's directional derivatives along them. `grad_rollout` and `fwd_rollout` are (model, fn) of
+    `Problem.train_rollout(grad=True / False, params_batched=True)`."""
+    grads = per_env_gradients(problem, grad_rollout)
 
     def f(u, terrain, keys, key):
+        j, g = grads(u, terrain, keys)
         flat, unravel = ravel_pytree(u)
-        B, P = keys.shape[0], flat.shape[0]
+        B, P = g.shape
         fb = jnp.broadcast_to(flat, (B, P))
-        # per-env gradients: every env has its own copy of u, so d(sum_e J_e)/du_e = dJ_e/du_e
-        total = lambda fb: (lambda j: (jnp.sum(j), j))(objective(gfn, gm, fb, unravel, terrain, keys))
-        (_, j), g = jax.value_and_grad(total, has_aux=True)(fb)
         eps = jax.random.normal(key, (B, pairs, P), flat.dtype)
         signed = jnp.concatenate([eps, -eps], axis=1)  # (B, 2K, P): +eps then -eps
         up = (fb[:, None, :] + sigma * signed).reshape(B * 2 * pairs, P)
         rep = lambda x: jnp.repeat(x, 2 * pairs, axis=0)  # env e's terrain and noise key for all its 2K runs
-        jp = objective(ffn, fm, up, unravel, jax.tree_util.tree_map(rep, terrain), rep(keys)).reshape(B, 2, pairs)
+        jp = _objective(problem, fwd_rollout, up, unravel, jax.tree_util.tree_map(rep, terrain), rep(keys))
+        jp = jp.reshape(B, 2, pairs)
         d = (jp[:, 0] - jp[:, 1]) / (2 * sigma)
         return j, g, eps, jnp.where(jnp.isfinite(d), d, 0.0)
 
