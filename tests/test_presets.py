@@ -29,7 +29,7 @@ def test_shipped_presets_load_with_the_papers_numbers():
         get_robot(name).validate()
     assert set(experiments()) >= {"luneckas2020", "yu2019-step", "yu2019-ditch", "zhao2018", "zhao2018-mjx",
                                   "chen2019", "chen2019-incenter"}
-    assert set(commands()) == {"evaluate", "bench", "tune", "render", "ppo", "terrain"}
+    assert set(commands()) == {"evaluate", "bench", "tune", "render", "ppo", "terrain", "robustness"}
 
 
 def test_presets_are_found_from_any_working_directory(tmp_path):

@@ -131,7 +131,9 @@ def test_objective_terms_in_the_start_frame():
 
 
 def _small_config(**kw):
-    base = dict(controller="tactile", gait="tripod", terrain="low-small", distance=0.08, train_batch=2,
+    # flat ground: determinism, resuming, bounds and the validation pick need no obstacles, and the flat
+    # programs compile in about two thirds of the time of low-small's (fewer collision pairs)
+    base = dict(controller="tactile", gait="tripod", terrain="flat", distance=0.08, train_batch=2,
                 held_out_batch=2, validation_batch=2, window=0.2, steps=2, eval_every=1, seed=3,
                 params={"step_length": {"min": 0.01, "max": 0.08}, "overcome_height": {"min": 0.02, "max": 0.12}},
                 optimizer={"name": "adam", "learning_rate": 0.2})

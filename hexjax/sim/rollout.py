@@ -21,6 +21,7 @@ from hexjax.control.base import Controller
 from hexjax.sim.backends.mujoco_c import rollout_c
 from hexjax.sim.compiled import Compiled
 from hexjax.sim.config import PhysicsConfig, RolloutConfig, SensorConfig
+from hexjax.sim import perturb
 from hexjax.sim.implicit import REMAT_POLICY, implicit_solver
 from hexjax.sim.model import mjx, reversible_solver, sim_model
 from hexjax.sim.step import Summary, control_steps, end_pose, init_acc, make_control_step, settle_steps, substeps
@@ -54,14 +55,14 @@ class RolloutStats:
 
 @functools.lru_cache(maxsize=32)
 def _compiled(robot: RobotSpec, physics: PhysicsConfig, sensors: SensorConfig, controller: Controller,
-              cfg: RolloutConfig, n_ctrl: int, params_batched: bool, impl: str = "jax"):
+              cfg: RolloutConfig, n_ctrl: int, params_batched: bool, impl: str = "jax", perturbed: bool = False):
     """(SimModel, Compiled batched rollout) for one static setting; cached, as its compile is the cost."""
     sm = sim_model(robot, physics, impl)
     n_settle = settle_steps(cfg, controller.dt)
     ctrl0_default = jnp.asarray(sm.ctrl0)
     control_step = make_control_step(sm, sensors, cfg, controller, n_settle)
 
-    def single(m_shared, params, terrain: Terrain, key, d_template):
+    def single(m_shared, params, terrain: Terrain, key, d_template, pert):
         k_yaw, k_ctrl = jax.random.split(key)
         yaw0 = jax.random.uniform(k_yaw, (), minval=-cfg.yaw_noise, maxval=cfg.yaw_noise)
         d0 = sm.init_data(jnp.stack([0.0, 0.0, yaw0]), d_template)
@@ -75,12 +76,13 @@ def _compiled(robot: RobotSpec, physics: PhysicsConfig, sensors: SensorConfig, c
         d0 = mjx.forward(m_shared, d0)
 
         def body(carry, i):
-            return control_step(carry, i, params, terrain, m_shared, ctrl0)
+            return control_step(carry, i, params, terrain, m_shared, ctrl0, pert)
 
         if cfg.remat:
             policy = REMAT_POLICY if cfg.solver_grad == "implicit" else None
             body = jax.checkpoint(body, prevent_cse=False, policy=policy)
-        (d, cstate, acc), rec = jax.lax.scan(body, (d0, cstate0, acc0), jnp.arange(n_settle + n_ctrl))
+        carry0 = (d0, cstate0, acc0) + ((perturb.init_state(ctrl0),) if perturbed else ())
+        (d, cstate, acc, *_), rec = jax.lax.scan(body, carry0, jnp.arange(n_settle + n_ctrl))
         extra = {}
         if cfg.record:
             rec = jax.tree_util.tree_map(lambda a: a[n_settle:], rec)
@@ -88,17 +90,19 @@ def _compiled(robot: RobotSpec, physics: PhysicsConfig, sensors: SensorConfig, c
                          force_trace=rec["force"], tactile_trace=rec["tactile"])
         return Summary(end_pose=end_pose(d.qpos), final_state=cstate, **extra, **acc)
 
-    def batched(m_shared, params, terrain, keys, d_template=None):
-        run = jax.vmap(single, in_axes=(None, 0 if params_batched else None, 0, 0, None))
+    def batched(m_shared, params, terrain, keys, d_template=None, pert=None):
+        run = jax.vmap(single, in_axes=(None, 0 if params_batched else None, 0, 0, None, 0 if perturbed else None))
         # how MJX's constraint solve is traced (`RolloutConfig.solver_grad`)
         solve = {"unrolled": lambda: reversible_solver(physics.iterations),
                  "implicit": implicit_solver}.get(cfg.solver_grad, contextlib.nullcontext)
         with solve():
-            return run(m_shared, params, terrain, keys, d_template)
+            return run(m_shared, params, terrain, keys, d_template, pert)
 
     # a program with host callbacks (progress) or MuJoCo Warp's kernels does not export: keep none of it
     keep = impl == "jax" and not cfg.progress_every
     static = (robot, physics, sensors, controller, cfg, n_ctrl, params_batched, impl) if keep else None
+    if keep and perturbed:
+        static += ("perturbed",)
     return sm, Compiled(jax.jit(batched), static=static)
 
 
@@ -120,7 +124,8 @@ def _check_static(robot: RobotSpec, controller, duration, physics: PhysicsConfig
 def rollout(robot: RobotSpec, terrain: Terrain, controller: Controller, params, duration: float, key, *,
             physics: PhysicsConfig = PhysicsConfig(), sensors: SensorConfig = SensorConfig(),
             config: RolloutConfig = RolloutConfig(), params_batched: bool = False,
-            mesh: Optional[Mesh] = None, backend: str = "mjx", nthread: Optional[int] = None, stats: bool = False):
+            mesh: Optional[Mesh] = None, backend: str = "mjx", nthread: Optional[int] = None, stats: bool = False,
+            perturbation=None):
     """Roll out a batch of hexapods, one per terrain of `terrain` (leading axis B).
 
     backend: which engine steps the physics; the control step, sensors and summary are the same.
@@ -135,7 +140,10 @@ def rollout(robot: RobotSpec, terrain: Terrain, controller: Controller, params, 
     `hexjax.control.Controller`; params: its params pytree (shared, or batched with leading axis B when
     params_batched); duration: seconds of control after settling; key: PRNG key (initial heading noise and
     controller init per env); mesh: optional `jax.sharding.Mesh` with an axis named 'batch' to shard the envs
-    over several devices. Returns a `Summary` with leading axis B, or (Summary, RolloutStats) with `stats`.
+    over several devices; perturbation: optional batched `hexjax.world.randomization.Perturbation` (leading axis
+    B, from `sample_perturbation`): per-env dynamics, sensing and faults, applied in every control step
+    (`hexjax.sim.perturb`; backend='mjx'). Returns a `Summary` with leading axis B, or (Summary,
+    RolloutStats) with `stats`.
     All inputs are checked on the host before anything is traced."""
     t0 = time.perf_counter()
     n_ctrl = _check_static(robot, controller, duration, physics, config)
@@ -153,13 +161,19 @@ def rollout(robot: RobotSpec, terrain: Terrain, controller: Controller, params, 
     if b < 1:
         raise ValueError(f"terrain batch size={b}: must be >= 1")
     controller.validate_params(params)
+    perturbed = perturbation is not None
+    if perturbed:
+        check_perturbation(perturbation, b)
+        if backend != "mjx":
+            raise ValueError(f"backend={backend!r}: a perturbation (per-env randomisation) is applied on "
+                             "backend='mjx' only so far")
     if backend == "c":
         out, compile_s = rollout_c(robot, terrain, controller, params, n_ctrl, key, physics=physics,
                                    sensors=sensors, config=config, params_batched=params_batched, nthread=nthread)
         compiled = "compiled" if compile_s else "process"
     else:
         impl = "warp" if backend == "warp" else "jax"
-        sm, fn = _compiled(robot, physics, sensors, controller, config, n_ctrl, params_batched, impl)
+        sm, fn = _compiled(robot, physics, sensors, controller, config, n_ctrl, params_batched, impl, perturbed)
         keys = jax.random.split(key, b)
         model = sm.mjx_model
         if mesh is not None:
@@ -173,7 +187,11 @@ def rollout(robot: RobotSpec, terrain: Terrain, controller: Controller, params, 
             keys = jax.device_put(keys, shard)
             params = jax.device_put(params, shard if params_batched else replicated)
             model = jax.device_put(model, replicated)
+            if perturbed:
+                perturbation = jax.device_put(perturbation, shard)
         args = (model, params, terrain, keys) + ((sm.make_data(b),) if impl == "warp" else ())
+        if perturbed:
+            args += (None, perturbation)
         out, cs = fn.call(*args)
         compile_s, compiled = cs.compile_s, cs.source
     if not stats:
@@ -186,17 +204,30 @@ def rollout(robot: RobotSpec, terrain: Terrain, controller: Controller, params, 
 
 def rollout_function(robot: RobotSpec, controller: Controller, duration: float, *,
                      physics: PhysicsConfig = PhysicsConfig(), sensors: SensorConfig = SensorConfig(),
-                     config: RolloutConfig = RolloutConfig(), params_batched: bool = False, kept: bool = False):
+                     config: RolloutConfig = RolloutConfig(), params_batched: bool = False, kept: bool = False,
+                     perturbed: bool = False):
     """(model, fn) with fn(model, params, terrain, keys) -> Summary the pure jitted batched rollout, for use
     inside `jax.grad`, `jax.jit` or `vmap` (e.g. tuning controller params). keys: (B, 2) PRNG keys, one per
     env. Same checks as `rollout` on the static inputs. For reverse-mode gradients set
     `RolloutConfig.solver_grad` to 'implicit' or 'unrolled' (or use a physics config with `iterations=1`):
     MJX runs its Newton iterations in a lax.while_loop, which JAX cannot reverse. kept=True: fn is the
     compiled program that `rollout` runs, kept on disk (`hexjax.sim.compiled`), to call with arrays, not
-    inside a transformation."""
+    inside a transformation. perturbed=True: fn(model, params, terrain, keys, None, perturbation) takes a
+    batched `Perturbation` as well (differentiable in its float fields)."""
     n_ctrl = _check_static(robot, controller, duration, physics, config)
-    sm, fn = _compiled(robot, physics, sensors, controller, config, n_ctrl, params_batched)
+    sm, fn = _compiled(robot, physics, sensors, controller, config, n_ctrl, params_batched, "jax", perturbed)
     return sm.mjx_model, (fn if kept else fn.jitted)
+
+
+def check_perturbation(perturbation, b: int):
+    """A batched Perturbation of `b` envs, or one ValueError line naming what is wrong."""
+    from hexjax.world.randomization import Perturbation
+    if not isinstance(perturbation, Perturbation):
+        raise ValueError(f"perturbation: expected a batched hexjax.world.randomization.Perturbation (from "
+                         f"sample_perturbation), got {type(perturbation).__name__}")
+    n = np.shape(perturbation.friction)
+    if len(n) != 1 or n[0] != b:
+        raise ValueError(f"perturbation batch size={n[0] if n else 'unbatched'}: must equal the terrain's {b} envs")
 
 
 def make_mesh(devices=None) -> Mesh:

@@ -19,6 +19,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from hexjax.sim import perturb
 from hexjax.sim.config import PhysicsConfig, RolloutConfig, SensorConfig
 from hexjax.sim.grad import clip_cotangent, cut_gradient
 from hexjax.sim.model import SimModel, assign_slots, env_model, mjx, obs_from_sensordata, place_static_geoms, read_obs
@@ -209,15 +210,18 @@ class progress_to:
 
 
 def make_control_step(sm: SimModel, sensors: SensorConfig, cfg: RolloutConfig, controller, n_settle: int):
-    """`step(carry, i, params, terrain, m_shared, ctrl0) -> (carry, record)` of one env for `lax.scan`, with
-    carry = (mjx.Data, controller state, accumulators) and record the step's traces (None unless
-    `cfg.record`). `ctrl0` (18,): the joint targets held while settling."""
+    """`step(carry, i, params, terrain, m_shared, ctrl0, pert=None) -> (carry, record)` of one env for
+    `lax.scan`, with carry = (mjx.Data, controller state, accumulators) and record the step's traces (None
+    unless `cfg.record`). `ctrl0` (18,): the joint targets held while settling. With `pert` (one env's
+    `Perturbation`) the carry has a fourth member, a `hexjax.sim.perturb.PerturbState`, and the draw acts on
+    the env's model, its sensor readings and the action (`hexjax.sim.perturb`); the summary's tactile counts
+    and the recorded forces stay the true ones."""
     n_sub = substeps(sm.physics, controller.dt)
     foot_sites = jnp.asarray(sm.foot_sites)
     dt = sm.physics.timestep
 
-    def step(carry, i, params, terrain, m_shared, ctrl0):
-        d, cstate, acc = carry
+    def step(carry, i, params, terrain, m_shared, ctrl0, pert=None):
+        d, cstate, acc = carry[:3]
         if cfg.progress_every:
             jax.lax.cond((i + 1) % cfg.progress_every == 0,
                          lambda: jax.debug.callback(_report_progress, i + 1), lambda: None)
@@ -226,22 +230,30 @@ def make_control_step(sm: SimModel, sensors: SensorConfig, cfg: RolloutConfig, c
         if cfg.grad_clip is not None:
             d, cstate = clip_cotangent((d, cstate), cfg.grad_clip)
         m, d, obs = env_view(sm, sensors, terrain, d, base=m_shared)
+        obs_true = obs
+        if pert is not None:
+            t_walk = (i - n_settle) * controller.dt
+            m = perturb.model(sm, m, pert, t_walk)
+            obs = perturb.observe(obs, pert, i, t_walk, sensors)
         new_cstate, action = controller.step(params, cstate, obs)
         walking = i >= n_settle
         action = jnp.where(walking, action, ctrl0)
         cstate = jax.tree_util.tree_map(lambda a, b: jnp.where(walking, a, b), new_cstate, cstate)
+        if pert is not None:
+            pstate, action = perturb.act(carry[3], action, d.qpos[7:], pert, t_walk)
         if cfg.grad_clip is not None:  # the physics' gradient reaches the controller through the action
             action = clip_cotangent(action, cfg.grad_clip)
         d = d.replace(ctrl=action)
         d_new, power = physics(m, d, n_sub)
         d_new, finite = keep_finite(d_new, d, sm.impl == "warp")
         acc = accumulate(acc, cfg, i, n_settle, controller.dt, d.qpos, d_new.qpos, finite, jnp.sum(power) * dt,
-                         obs.tactile, terrain.ground_z)
+                         obs_true.tactile, terrain.ground_z)
         out = None
         if cfg.record:
             out = dict(pose=jnp.concatenate([d_new.qpos[:3], quat_yaw(d_new.qpos[3:7])[None]]),
                        feet=d_new.site_xpos[foot_sites], ctrl=controller.trace(cstate, obs),
-                       qpos=d_new.qpos, force=obs.foot_force, tactile=obs.tactile)
-        return (d_new, cstate, acc), out
+                       qpos=d_new.qpos, force=obs_true.foot_force, tactile=obs_true.tactile)
+        carry = (d_new, cstate, acc) if pert is None else (d_new, cstate, acc, pstate)
+        return carry, out
 
     return step

@@ -1,0 +1,327 @@
+"""`hexjax robustness`: success, goal error, falls and energy of one or more controllers over a sweep of one
+or two axes, each a randomisation range (`hexjax.world.randomization`) or a terrain dimension, with each
+controller's robustness envelope.
+
+Every cell of the sweep runs `batch` envs in one call of one compiled rollout per controller (the cell's values
+are data: terrain boxes padded to one count, per-env draws, per-cell params), so a sweep compiles once per
+controller whatever its size. Cells share their terrains and draws across controllers (common random
+numbers), finished cells are kept beside the JSON (`<json>.partial.json`) and a rerun resumes after them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import itertools
+import json
+import math
+import os
+import sys
+from typing import Dict, List, Sequence, Tuple
+
+import numpy as np
+
+from hexjax.world.randomization import AXES as RANDOM_AXES
+
+# terrain axes: the sweep value v sets the terrain spec's range to [v, v]
+TERRAIN_AXES = {"obstacle_height": "height_range", "obstacle_length": "length_range",
+                "obstacle_width": "width_range", "obstacle_spacing": "spacing_range"}
+# which way an axis gets harder (+1: larger values are harder), for the envelope
+HARDER = {"obstacle_height": 1, "obstacle_length": 1, "obstacle_width": 1, "obstacle_spacing": -1,
+          "friction": -1, "torso_mass_scale": 1, "payload_kg": 1, "payload_offset_m": 1, "kp_scale": -1,
+          "torque_scale": -1, "damping_scale": 1, "latency_steps": 1, "force_noise_n": 1, "force_bias_n": 1,
+          "force_dropout": 1, "tactile_noise_n": 1, "tactile_bias_n": 1, "tactile_dropout": 1,
+          "fault_time_s": -1, "fault_probability": 1}
+CONTROLLERS = ("gait", "tactile")
+ENVELOPE_SUCCESS = 0.9
+
+
+def parse_axis(text: str) -> Tuple[str, List[float]]:
+    """'name=low:high:n' (n evenly spaced values, ends included) or 'name=v1,v2,...' -> (name, values)."""
+    if "=" not in str(text):
+        raise ValueError(f"--axis {text!r}: write name=low:high:n or name=v1,v2,...")
+    name, spec = (s.strip() for s in str(text).split("=", 1))
+    if name not in TERRAIN_AXES and name not in RANDOM_AXES:
+        raise ValueError(f"--axis {name!r}: unknown axis; terrain axes: {', '.join(TERRAIN_AXES)}; "
+                         f"randomisation axes: {', '.join(RANDOM_AXES)}")
+    try:
+        if ":" in spec:
+            lo, hi, n = spec.split(":")
+            lo, hi, n = float(lo), float(hi), int(n)
+            if not (math.isfinite(lo) and math.isfinite(hi)) or lo > hi or not (1 <= n <= 64):
+                raise ValueError
+            values = [lo] if n == 1 else [round(float(v), 9) for v in np.linspace(lo, hi, n)]
+        else:
+            values = [float(v) for v in spec.split(",")]
+            if not values or not all(math.isfinite(v) for v in values):
+                raise ValueError
+    except ValueError:
+        raise ValueError(f"--axis {text!r}: values must be low:high:n with low <= high and 1 <= n <= 64, "
+                         "or a comma list of numbers") from None
+    return name, values
+
+
+def wilson(k: int, n: int, z: float = 1.96) -> Tuple[float, float]:
+    """95 % Wilson score interval of a success rate k / n."""
+    if n == 0:
+        return 0.0, 1.0
+    p = k / n
+    den = 1 + z * z / n
+    mid = (p + z * z / (2 * n)) / den
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / den
+    return max(0.0, mid - half), min(1.0, mid + half)
+
+
+def envelope(values: Sequence[float], successes: Sequence[Tuple[int, int]], axis: str) -> Dict:
+    """The hardest level of `axis` reached from its easiest with success >= 90 % at every level on the way
+    (None if the easiest already fails), with the success rate there and its 95 % interval; `sure`: the
+    hardest such level whose interval's lower end is >= 90 % too."""
+    order = sorted(range(len(values)), key=lambda i: HARDER.get(axis, 1) * values[i])
+    best = sure = None
+    for i in order:
+        k, n = successes[i]
+        if n == 0 or k / n < ENVELOPE_SUCCESS:
+            break
+        best = i
+        if wilson(k, n)[0] >= ENVELOPE_SUCCESS:
+            sure = i
+    if best is None:
+        return {"level": None, "success": None, "ci95": None, "sure_level": None}
+    k, n = successes[best]
+    return {"level": values[best], "success": k / n, "ci95": list(wilson(k, n)),
+            "sure_level": None if sure is None else values[sure]}
+
+
+def _digest(o) -> str:
+    keys = ("controllers", "axis", "batch", "terrain", "robot", "distance", "seed", "randomization", "cone",
+            "iterations")
+    return hashlib.sha256(json.dumps({k: getattr(o, k) for k in keys}, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def _controllers(names, robot):
+    from hexjax.control.gait import GaitController
+    from hexjax.control.tactile import TactileGaitController
+    out = {}
+    for name in names:
+        if name == "gait":
+            out[name] = GaitController(robot, gait="tripod")
+        elif name == "tactile":
+            out[name] = TactileGaitController(robot, gait="tripod")
+        else:
+            raise ValueError(f"--controllers {name!r}: use some of {', '.join(CONTROLLERS)}")
+    return out
+
+
+def sweep(o) -> Dict:
+    """The sweep of parsed options `o` (configs/commands/robustness.yaml)."""
+    import jax
+    import jax.numpy as jnp
+    from tqdm.auto import tqdm
+
+    from hexjax.experiments.metrics import batch_stats, goal_errors
+    from hexjax.sim.config import PhysicsConfig, RolloutConfig
+    from hexjax.sim.rollout import make_mesh, rollout
+    from hexjax.world.files import read_yaml
+    from hexjax.world.presets import get_robot, get_terrain
+    from hexjax.world.randomization import randomization_from_dict, sample_perturbation
+    from hexjax.world.terrain import pad_terrain, sample
+
+    axes = [parse_axis(a) for a in o.axis]
+    if not 1 <= len(axes) <= 2:
+        raise ValueError(f"--axis given {len(axes)} times: sweep one or two axes")
+    if len(axes) == 2 and axes[0][0] == axes[1][0]:
+        raise ValueError(f"--axis {axes[0][0]} given twice")
+    if not (isinstance(o.batch, int) and o.batch >= 1):
+        raise ValueError(f"--batch={o.batch!r}: must be a whole number >= 1")
+    if not (0 < o.distance <= 5):
+        raise ValueError(f"--distance={o.distance!r}: must be in (0, 5] m")
+    robot = get_robot(o.robot)
+    ctrls = _controllers(o.controllers, robot)
+    raw = read_yaml(o.randomization) if o.randomization else None
+    if raw is not None and "randomization" in raw:  # a file with a randomization: block, or the block alone
+        raw = raw["randomization"]
+    base_rand = randomization_from_dict(raw, source=o.randomization or "randomization")
+    base_terrain = get_terrain(o.terrain, length=o.distance + 0.3)
+    for name, _ in axes:
+        if name in TERRAIN_AXES and base_terrain.kind != "obstacles":
+            raise ValueError(f"--axis {name}: needs an obstacle terrain (--terrain {o.terrain!r} is "
+                             f"{base_terrain.kind!r})")
+    cells = list(itertools.product(*[v for _, v in axes]))
+    t_specs, r_specs = [], []
+    for values in cells:
+        t, r = base_terrain, base_rand
+        for (name, _), v in zip(axes, values):
+            if name in TERRAIN_AXES:
+                t = dataclasses.replace(t, **{TERRAIN_AXES[name]: (v, v)})
+            else:
+                r = r.with_value(name, v)
+        t.validate()
+        t_specs.append(t)
+        r_specs.append(r)
+    physics = PhysicsConfig(cone=o.cone, iterations=o.iterations)
+    physics.validate()
+    # each cell's envs sharded over as many devices as divide the batch (several GPUs, or a CPU's cores)
+    n_dev = max(d for d in range(1, len(jax.devices()) + 1) if o.batch % d == 0)
+    mesh = make_mesh(jax.devices()[:n_dev]) if n_dev > 1 else None
+    n_box = max(s.max_boxes for s in t_specs)
+    plan = {}
+    for cname, ctrl in ctrls.items():
+        p0 = ctrl.default_params()
+        n_cycles, duration = ctrl.duration_for(o.distance, p0) if cname == "gait" else ctrl.duration_for(o.distance)
+        ctrl = dataclasses.replace(ctrl, n_cycles=n_cycles)
+        for r in r_specs:
+            r.check_horizon(duration)
+        plan[cname] = (ctrl, duration)
+
+    digest = _digest(o)
+    partial = (o.json + ".partial.json") if o.json else ""
+    done = {}
+    if partial and os.path.exists(partial):
+        with open(partial) as f:
+            saved = json.load(f)
+        if saved.get("digest") == digest:
+            done = saved["cells"]
+    key = jax.random.PRNGKey(o.seed)
+    jobs = [(c, i) for c in ctrls for i in range(len(cells))]
+    bar = tqdm(jobs, desc="robustness", unit="cell", disable=not getattr(o, "progress", True))
+    compile_s = {c: 0.0 for c in ctrls}
+    for cname, i in bar:
+        tag = f"{cname}|{i}"
+        bar.set_postfix_str(f"{cname} " + ", ".join(f"{n}={v:g}" for (n, _), v in zip(axes, cells[i])))
+        if tag in done:
+            continue
+        ctrl, duration = plan[cname]
+        k_t, k_r, k_p = jax.random.split(jax.random.fold_in(key, i), 3)
+        terr = pad_terrain(sample(t_specs[i], k_t, o.batch), n_box)
+        pert = sample_perturbation(r_specs[i], k_p, o.batch)
+        params = ctrl.default_params()
+        if cname == "tactile":  # Eq. 7's H: the cell's highest obstacle
+            from hexjax.control.tactile import overcome_height
+            h = overcome_height(t_specs[i].height_range[1])
+            params = params.replace(overcome_height=jnp.asarray(h, jnp.asarray(params.overcome_height).dtype))
+        summ, st = rollout(robot, terr, ctrl, params, duration, k_r, physics=physics, config=RolloutConfig(),
+                           perturbation=pert, stats=True, mesh=mesh)
+        errs = goal_errors(summ, o.distance)
+        stats = batch_stats(summ, errs)
+        k = int(np.asarray(errs.success).sum())
+        stats.update(successes=k, success_ci95=list(wilson(k, o.batch)), wall_s=st.run_s, compile_s=st.compile_s,
+                     goal_error_cm=100 * float(np.nanmean(np.hypot(np.asarray(errs.dx), np.asarray(errs.dy)))))
+        compile_s[cname] += st.compile_s
+        done[tag] = stats
+        if partial:
+            with open(partial, "w") as f:
+                json.dump({"digest": digest, "cells": done}, f, default=float)
+    rows = []
+    for cname in ctrls:
+        for i, values in enumerate(cells):
+            rows.append(dict(controller=cname, **{n: v for (n, _), v in zip(axes, values)}, **done[f"{cname}|{i}"]))
+    env = {}
+    first, fvals = axes[0]
+    for cname in ctrls:
+        groups = [()] if len(axes) == 1 else [(v,) for v in axes[1][1]]
+        for g in groups:
+            sel = [r for r in rows if r["controller"] == cname and (not g or r[axes[1][0]] == g[0])]
+            label = cname if not g else f"{cname} | {axes[1][0]}={g[0]:g}"
+            env[label] = envelope([r[first] for r in sel], [(r["successes"], r["n"]) for r in sel], first)
+    return {"config": dict(controllers=list(ctrls), axes={n: v for n, v in axes}, batch=o.batch, robot=robot.name,
+                           terrain=o.terrain, distance_m=o.distance, seed=o.seed, cone=o.cone,
+                           iterations=o.iterations, randomization=base_rand.to_dict(),
+                           durations_s={c: plan[c][1] for c in ctrls}, backend=jax.default_backend(),
+                           devices=n_dev),
+            "cells": rows, "envelope": env, "compile_s": compile_s}
+
+
+def _host_devices():
+    """On a CPU, one XLA device runs a batch on about one core; as many host devices as cores let each cell's
+    envs be sharded over all of them. Set before JAX loads, unless the user set the count already."""
+    flags = os.environ.get("XLA_FLAGS", "")
+    if "jax" not in sys.modules and "xla_force_host_platform_device_count" not in flags:
+        os.environ["XLA_FLAGS"] = f"{flags} --xla_force_host_platform_device_count={os.cpu_count() or 1}".strip()
+
+
+def run(o, entry) -> Dict:
+    _host_devices()
+    return sweep(o)
+
+
+def report(res: Dict) -> str:
+    c = res["config"]
+    names = list(c["axes"])
+    head = (f"{'controller':<10} " + " ".join(f"{n:>16}" for n in names)
+            + f" {'succ %':>7} {'95 % CI':>13} {'goal err cm':>11} {'fall %':>7} {'energy J':>9} {'NaN':>4}")
+    lines = [f"\nrobustness sweep: {c['batch']} envs per cell on {c.get('devices', 1)} device(s), "
+             f"{c['distance_m']:g} m on {c['terrain']}, "
+             f"{c['cone']} cone, {c['iterations']} Newton iterations, seed {c['seed']}", head, "-" * len(head)]
+    for r in res["cells"]:
+        lo, hi = r["success_ci95"]
+        lines.append(f"{r['controller']:<10} " + " ".join(f"{r[n]:16g}" for n in names)
+                     + f" {r['success_pct']:7.1f} {100 * lo:5.1f}-{100 * hi:5.1f} % {r['goal_error_cm']:11.1f} "
+                     f"{r['fall_pct']:7.1f} {r['energy_J']:9.2f} {r['nan']:4d}")
+    lines.append("succ: upright and within 10 cm of the goal; 95 % CI: Wilson interval of the success rate")
+    lines.append(f"robustness envelope along {names[0]} (the hardest level reached with success >= 90 % at every "
+                 "easier level; 'sure': its 95 % interval above 90 % too):")
+    for label, e in res["envelope"].items():
+        if e["level"] is None:
+            lines.append(f"  {label}: below 90 % already at the easiest level")
+        else:
+            sure = "none" if e["sure_level"] is None else f"{e['sure_level']:g}"
+            lines.append(f"  {label}: {names[0]} = {e['level']:g} (success {100 * e['success']:.0f} %, 95 % CI "
+                         f"{100 * e['ci95'][0]:.0f}-{100 * e['ci95'][1]:.0f} %; sure: {sure})")
+    lines.append("compile s per controller: " + ", ".join(f"{k} {v:.1f}" for k, v in res["compile_s"].items()))
+    return "\n".join(lines)
+
+
+METRICS = (("success_pct", "success %", "RdYlGn"), ("goal_error_cm", "goal error (cm)", "viridis_r"),
+           ("fall_pct", "falls %", "Reds"), ("energy_J", "energy (J)", "magma_r"))
+
+
+def plot(res: Dict, png: str) -> List[str]:
+    """One panel per metric and controller: curves over a single axis, heat maps over two."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    c = res["config"]
+    names = list(c["axes"])
+    ctrls = c["controllers"]
+    if len(names) == 1:
+        fig, axs = plt.subplots(1, len(METRICS), figsize=(4.2 * len(METRICS), 3.6))
+        for ax, (key, label, _) in zip(axs, METRICS):
+            for cname in ctrls:
+                sel = [r for r in res["cells"] if r["controller"] == cname]
+                x = [r[names[0]] for r in sel]
+                y = [r[key] for r in sel]
+                ax.plot(x, y, "o-", label=cname)
+                if key == "success_pct":
+                    lo = [100 * r["success_ci95"][0] for r in sel]
+                    hi = [100 * r["success_ci95"][1] for r in sel]
+                    ax.fill_between(x, lo, hi, alpha=0.2)
+            ax.set_xlabel(names[0])
+            ax.set_title(label)
+            ax.grid(alpha=0.3)
+        axs[0].axhline(100 * ENVELOPE_SUCCESS, color="k", lw=0.8, ls="--")
+        axs[0].legend()
+    else:
+        xs, ys = c["axes"][names[0]], c["axes"][names[1]]
+        fig, axs = plt.subplots(len(ctrls), len(METRICS), figsize=(4.2 * len(METRICS), 3.4 * len(ctrls)), squeeze=False)
+        for row, cname in enumerate(ctrls):
+            for col, (key, label, cmap) in enumerate(METRICS):
+                grid = np.full((len(ys), len(xs)), np.nan)
+                for r in res["cells"]:
+                    if r["controller"] == cname:
+                        grid[ys.index(r[names[1]]), xs.index(r[names[0]])] = r[key]
+                ax = axs[row, col]
+                im = ax.imshow(grid, origin="lower", cmap=cmap, aspect="auto",
+                               vmin=0 if key.endswith("pct") else None, vmax=100 if key.endswith("pct") else None)
+                for (yi, xi), v in np.ndenumerate(grid):
+                    ax.text(xi, yi, f"{v:.0f}" if abs(v) >= 10 else f"{v:.2g}", ha="center", va="center", fontsize=8)
+                ax.set_xticks(range(len(xs)), [f"{v:g}" for v in xs])
+                ax.set_yticks(range(len(ys)), [f"{v:g}" for v in ys])
+                ax.set_xlabel(names[0])
+                ax.set_ylabel(names[1])
+                ax.set_title(f"{cname}: {label}")
+                fig.colorbar(im, ax=ax, shrink=0.8)
+    fig.suptitle(f"robustness: {c['batch']} envs per cell, {c['distance_m']:g} m on {c['terrain']}")
+    fig.tight_layout()
+    fig.savefig(png, dpi=100)
+    plt.close(fig)
+    return [png]
