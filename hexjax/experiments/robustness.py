@@ -115,12 +115,14 @@ def _controllers(names, robot):
 def sweep(o) -> Dict:
     """The sweep of parsed options `o` (configs/commands/robustness.yaml)."""
     import jax
-    import jax.numpy as jnp
     from tqdm.auto import tqdm
+
+    from hexjax.control.tactile import overcome_height
 
     from hexjax.experiments.metrics import batch_stats, goal_errors
     from hexjax.sim.config import PhysicsConfig, RolloutConfig
     from hexjax.sim.rollout import make_mesh, rollout
+    from hexjax.tune.space import with_values
     from hexjax.world.files import read_yaml
     from hexjax.world.presets import get_robot, get_terrain
     from hexjax.world.randomization import randomization_from_dict, sample_perturbation
@@ -166,8 +168,7 @@ def sweep(o) -> Dict:
     n_box = max(s.max_boxes for s in t_specs)
     plan = {}
     for cname, ctrl in ctrls.items():
-        p0 = ctrl.default_params()
-        n_cycles, duration = ctrl.duration_for(o.distance, p0) if cname == "gait" else ctrl.duration_for(o.distance)
+        n_cycles, duration = ctrl.duration_for(o.distance)
         ctrl = dataclasses.replace(ctrl, n_cycles=n_cycles)
         for r in r_specs:
             r.check_horizon(duration)
@@ -196,9 +197,7 @@ def sweep(o) -> Dict:
         pert = sample_perturbation(r_specs[i], k_p, o.batch)
         params = ctrl.default_params()
         if cname == "tactile":  # Eq. 7's H: the cell's highest obstacle
-            from hexjax.control.tactile import overcome_height
-            h = overcome_height(t_specs[i].height_range[1])
-            params = params.replace(overcome_height=jnp.asarray(h, jnp.asarray(params.overcome_height).dtype))
+            params = with_values(params, {"overcome_height": overcome_height(t_specs[i].height_range[1])})
         summ, st = rollout(robot, terr, ctrl, params, duration, k_r, physics=physics, config=RolloutConfig(),
                            perturbation=pert, stats=True, mesh=mesh)
         errs = goal_errors(summ, o.distance)

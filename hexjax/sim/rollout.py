@@ -18,10 +18,10 @@ from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
 from hexjax.control.base import Controller
+from hexjax.sim import perturb
 from hexjax.sim.backends.mujoco_c import rollout_c
 from hexjax.sim.compiled import Compiled
 from hexjax.sim.config import PhysicsConfig, RolloutConfig, SensorConfig
-from hexjax.sim import perturb
 from hexjax.sim.implicit import REMAT_POLICY, implicit_solver
 from hexjax.sim.model import mjx, reversible_solver, sim_model
 from hexjax.sim.step import Summary, control_steps, end_pose, init_acc, make_control_step, settle_steps, substeps

@@ -34,6 +34,7 @@ env; a single number v means [v, v]):
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from typing import Any, Dict, Mapping, Optional, Tuple
 
@@ -141,9 +142,9 @@ class RandomizationSpec:
             if self.fault is None:
                 raise ValueError(f"randomization.{key}: no fault in the randomization to set it on")
             sub = key[len("fault_"):]
-            v = (float(value), float(value)) if sub == "time_s" else float(value)
             if sub not in ("time_s", "probability"):
                 raise ValueError(f"randomization.{key}: unknown; a sweep sets fault_time_s or fault_probability")
+            v = (float(value), float(value)) if sub == "time_s" else float(value)
             return dataclasses.replace(self, fault=dataclasses.replace(self.fault, **{sub: v})).validate()
         if key not in _LIMITS:
             raise ValueError(f"randomization.{key}: unknown key; known: {', '.join(list(_LIMITS))}")
@@ -192,13 +193,9 @@ def randomization_from_dict(raw: Optional[Mapping[str, Any]], source: str = "ran
     return spec
 
 
-def _struct():
-    from flax import struct
-    return struct
-
-
+@functools.lru_cache(maxsize=1)
 def _perturbation_class():
-    struct = _struct()
+    from flax import struct
 
     @struct.dataclass
     class Perturbation:
@@ -232,14 +229,9 @@ def _perturbation_class():
     return Perturbation
 
 
-_PERTURBATION = []
-
-
 def __getattr__(name):  # Perturbation is made on first use, so importing this module loads no JAX
     if name == "Perturbation":
-        if not _PERTURBATION:
-            _PERTURBATION.append(_perturbation_class())
-        return _PERTURBATION[0]
+        return _perturbation_class()
     raise AttributeError(name)
 
 
@@ -263,13 +255,9 @@ def _fault_arrays(spec: RandomizationSpec):
     return np.int32(FAULT_KINDS.index(f.kind)), mask, np.asarray(f.time_s, np.float32), np.float32(f.probability)
 
 
-_DRAW = []
-
-
+@functools.lru_cache(maxsize=1)
 def _draw_fn():
     """The jitted, vmapped draw: every range and the fault are arguments, so one program serves every spec."""
-    if _DRAW:
-        return _DRAW[0]
     import jax
     import jax.numpy as jnp
     P = __getattr__("Perturbation")
@@ -298,9 +286,7 @@ def _draw_fn():
                  fault_time=jnp.where(has, onset[0] + (onset[1] - onset[0]) * jax.random.uniform(jax.random.fold_in(k[14], 1), ()), jnp.inf),
                  key=jax.random.fold_in(key, i + 2 ** 30))
 
-    fn = jax.jit(jax.vmap(one, in_axes=(None,) * 6 + (0,)))
-    _DRAW.append(fn)
-    return fn
+    return jax.jit(jax.vmap(one, in_axes=(None,) * 6 + (0,)))
 
 
 def sample_perturbation(spec: RandomizationSpec, key, n: int):
