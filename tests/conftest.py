@@ -11,7 +11,8 @@ _PEAKS = []
 
 # The slowest tests on 2 cores with a cold cache (compile-bound), slowest first: handed out first, they
 # keep the two workers busy to the end instead of leaving one of them a long test at the finish.
-SLOW_FIRST = ("test_cpg_gradient_matches_central_differences", "test_tuning_is_deterministic_and_resumes",
+SLOW_FIRST = ("test_cpg_gradient_matches_central_differences", "test_families_walkable_at_zero_and_harder_with_difficulty",
+              "test_tuning_is_deterministic_and_resumes", "test_two_processes_give_the_per_env_numbers_of_one",
               "test_brax_ppo_trains", "test_gradient_matches_central_differences_per_group",
               "test_es_baseline_improves", "test_smooth_rollout_tends_to_hard_rollout",
               "test_evaluate_obstacles_lose_distance", "test_sharded_rollout_matches_unsharded",

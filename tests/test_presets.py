@@ -18,7 +18,11 @@ from hexjax.world.presets import get_robot, get_terrain
 
 def test_shipped_presets_load_with_the_papers_numbers():
     assert preset_names("robots") == ["chen2019", "luneckas2020", "yu2019"]
-    assert len(preset_names("terrains")) == 12 and len(preset_names("tune")) >= 2
+    assert len(preset_names("terrains")) == 18 and len(preset_names("tune")) >= 2
+    # the benchmark families load at their shipped difficulty (0.5): a 4.5 cm riser, 2.5 cm gaps, 0.3 rad ramps
+    assert get_terrain("stairs-up").height_range == pytest.approx((0.045, 0.045))
+    assert get_terrain("stones").gap_range == pytest.approx((0.025, 0.025))
+    assert get_terrain("slope-down").slope_range == pytest.approx((0.3, 0.3)) and get_terrain("slope-down").direction == "down"
     lun, yu = get_robot("luneckas2020"), get_robot("yu2019")
     # Luneckas 2020 Sect. 2.1: coxa 5 cm, femur 8.2 cm, tibia 12 cm, 1.5 kg; Yu 2019 Table 3: 50/120/150 mm
     assert (lun.coxa_length, lun.femur_length, lun.tibia_length, lun.total_mass) == (0.05, 0.082, 0.12, 1.5)

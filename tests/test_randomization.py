@@ -103,17 +103,21 @@ def perturbed_walks():
     phys = PhysicsConfig(cone="elliptic")
     run = lambda: rollout(robot, terr, ctrl, ctrl.default_params(), dur, jax.random.PRNGKey(0), config=cfg,
                           physics=phys, perturbation=pert)
-    return {name: i for i, name in enumerate(ROWS)}, run(), run()
+    # the same draws on the MuJoCo C and MJX-Warp backends (no traces there)
+    other = {be: rollout(robot, terr, ctrl, ctrl.default_params(), dur, jax.random.PRNGKey(0), physics=phys,
+                         config=RolloutConfig(yaw_noise=0.0, record=be == "warp"), perturbation=pert,
+                         backend=be, nthread=2 if be == "c" else None) for be in ("c", "warp")}
+    return {name: i for i, name in enumerate(ROWS)}, run(), run(), other
 
 
 def test_same_key_gives_bit_identical_results(perturbed_walks):
-    _, s1, s2 = perturbed_walks
+    _, s1, s2, _ = perturbed_walks
     for x, y in zip(jax.tree_util.tree_leaves(s1), jax.tree_util.tree_leaves(s2)):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
 
 
 def test_each_perturbation_does_what_it_should(perturbed_walks):
-    row, s, _ = perturbed_walks
+    row, s, _, _ = perturbed_walks
     assert not np.asarray(s.nan).any()
     z = np.asarray(s.trace)[..., 2]  # torso height per control step
     adv = np.asarray(s.end_pose[:, 0] - s.start_pose[:, 0])
@@ -169,8 +173,43 @@ def test_robustness_command_refuses_bad_input_before_any_rollout(capsys, tmp_pat
                       (["--axis", "force_dropout=0:1.5:2"], "randomization.force_dropout=[1.5, 1.5]: must lie in [0, 1]"),
                       (["--axis", "friction=0.5,1", "--randomization", str(late)],
                        "fault.time_s=[100.0, 100.0]: starts at or after the"),
-                      (["--axis", "obstacle_height=0.02:0.04:2", "--terrain", "flat"], "needs an obstacle terrain")):
+                      (["--axis", "obstacle_height=0.02:0.04:2", "--terrain", "flat"], "needs an obstacle terrain"),
+                      (["--axis", "difficulty=0:1.5:2", "--terrain", "stairs-up"],
+                       "terrain.difficulty=1.5: must be in [0, 1]"),
+                      (["--axis", "friction=0.5,1", "--controllers", "gait,walk"], "--controllers 'walk': use some of"),
+                      (["--axis", "friction=0.5,1", "--controllers", "cpg@robot9"], "robot preset 'robot9' unknown"),
+                      (["--axis", "friction=0.5,1", "--processes", "2", "--process-id", "3"],
+                       "--process-id=3: must be in [0, 1]"),
+                      (["--axis", "friction=0.5,1", "--processes", "2", "--coordinator", "nohost"],
+                       "--coordinator='nohost'")):
         assert main(["robustness"] + argv + ["--json", str(tmp_path / "r.json")]) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and msg in err[0], err
     assert not (tmp_path / "r.json.partial.json").exists()
+
+
+@pytest.mark.parametrize("backend", ["c", "warp"])
+def test_every_backend_honours_the_same_draws(perturbed_walks, backend):
+    """The MuJoCo C and MJX-Warp backends, given the same `Perturbation`, show every effect the MJX rollout
+    shows (the same checks on their summaries; torso height: its mean over the walk on Warp, which records
+    traces, its lowest point on C, which does not) and each draw moves the robot about as far as on MJX (advance
+    within 5 cm, nominal 0.38 m; the engines' contacts differ, as in tests/test_backends.py)."""
+    row, m, _, other = perturbed_walks
+    c = other[backend]
+    assert not np.asarray(c.nan).any()
+    adv = lambda s: np.asarray(s.end_pose[:, 0] - s.start_pose[:, 0])
+    ac, am = adv(c), adv(m)
+    low = np.asarray(c.trace)[..., 2].mean(-1) if backend == "warp" else np.asarray(c.min_height)
+    dyaw = np.abs(np.asarray(c.travel)[:, 2])
+    n_over = np.asarray(c.final_state.n_overcome).sum(-1)
+    nom = row["nominal"]
+    print({k: dict(adv_c=round(float(ac[i]), 4), adv_mjx=round(float(am[i]), 4), low=round(float(low[i]), 4),
+                   dyaw=round(float(dyaw[i]), 3), over=int(n_over[i])) for k, i in row.items()})
+    assert ac[nom] == ac[row["nominal again"]] and ac[nom] > 0.3 and n_over[nom] >= 2
+    assert low[row["payload"]] < low[nom] - 0.001
+    assert ac[row["no friction"]] < 0.25 * ac[nom]
+    assert dyaw[row["locked leg"]] > dyaw[nom] + 0.3
+    assert low[row["limp leg"]] < low[nom] - 0.002 and ac[row["limp leg"]] < 0.75 * ac[nom]
+    assert np.asarray(c.tactile_steps)[row["pad dropout"]].sum() > 0 and n_over[row["pad dropout"]] == 0
+    assert ac[row["latency"]] != ac[nom] and ac[row["latency"]] > 0.2
+    np.testing.assert_allclose(ac, am, atol=0.05)

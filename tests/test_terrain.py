@@ -2,9 +2,9 @@ import jax
 import numpy as np
 import pytest
 
-from hexjax.world.presets import get_terrain
+from hexjax.world.presets import get_robot, get_terrain
 from hexjax.world.files import preset_names
-from hexjax.world.terrain import LUNECKAS2020_CATEGORIES, heightmap, obstacle_circles, sample
+from hexjax.world.terrain import DIFFICULTY, LUNECKAS2020_CATEGORIES, heightmap, leg_scale, obstacle_circles, sample
 
 B = 64
 
@@ -100,8 +100,9 @@ def test_all_presets_sample_inside_their_spec():
         assert valid.any(1).all(), name
         assert np.all(half[valid] > 0), name
         bottom, top = (pos - half)[..., 2], (pos + half)[..., 2]
-        np.testing.assert_allclose(bottom[valid], np.broadcast_to(np.where(spec.kind == "ditch", gz, 0.0)[:, None],
-                                                                  bottom.shape)[valid], atol=1e-6, err_msg=name)
+        # every box stands on the ground plane (at the ditch / pit bottom, or below the stairs and slopes down)
+        np.testing.assert_allclose(bottom[valid], np.broadcast_to(gz[:, None], bottom.shape)[valid], atol=1e-6,
+                                   err_msg=name)
         lo, hi = spec.height_range
         if spec.kind in ("obstacles", "step"):
             assert np.all((top[valid] >= lo - 1e-6) & (top[valid] <= hi + 1e-6)), name
@@ -127,3 +128,133 @@ def test_unknown_preset_and_empty_batch():
         get_terrain("mountains")
     with pytest.raises(ValueError, match="batch=0"):
         sample(get_terrain("flat"), jax.random.PRNGKey(0), 0)
+
+
+def _tops(t):
+    pos, half, valid = (np.asarray(x) for x in (t.box_pos, t.box_half, t.box_valid))
+    return pos, half, valid, (pos + half)[..., 2]
+
+
+@pytest.mark.parametrize("d", [0.0, 0.5, 1.0])
+def test_stairs_follow_their_difficulty(d):
+    """Stairs rise 1 cm at difficulty 0 to 8 cm at 1 for the Luneckas 2020 robot: up, the valid boxes' tops
+    are riser * (1..n) from start_x on; down, the robot's platform is at z = 0, the steps below it go down by
+    one riser each and the ground plane is the n-th."""
+    riser = 0.01 + 0.07 * d
+    up = get_terrain("stairs-up", difficulty=d)
+    assert up.height_range == pytest.approx((riser, riser))
+    pos, half, valid, top = _tops(sample(up, jax.random.PRNGKey(0), 4))
+    n = up.stair_count
+    for e in range(4):
+        np.testing.assert_allclose(np.sort(top[e][valid[e]]), riser * np.arange(1, n + 1), atol=1e-6)
+        lo = np.sort((pos - half)[e, valid[e], 0])
+        tread = np.diff(lo)
+        assert lo[0] == pytest.approx(up.start_x) and np.all((tread >= 0.1 - 1e-6) & (tread <= 0.12 + 1e-6))
+    down = sample(get_terrain("stairs-down", difficulty=d), jax.random.PRNGKey(0), 4)
+    pos, half, valid, top = _tops(down)
+    np.testing.assert_allclose(np.asarray(down.ground_z), -riser * n, atol=1e-6)
+    for e in range(4):
+        np.testing.assert_allclose(np.sort(top[e][valid[e]])[::-1], -riser * np.arange(n), atol=1e-6)
+        hm = heightmap(jax.tree_util.tree_map(lambda x: x[e], down), (-0.2, 0.2), (-0.05, 0.05), 0.01)
+        assert hm.max() == pytest.approx(0.0, abs=1e-6) and hm.min() == pytest.approx(0.0, abs=1e-6)  # start
+
+
+@pytest.mark.parametrize("name", ["slope-up", "slope-down"])
+def test_slope_rises_at_its_angle(name):
+    """The ramp's top follows tan(angle) * (x - start_x) within half a slice's rise, up or down; the angle is
+    34 deg (0.6 rad) at difficulty 1 and flat ground at 0."""
+    for d, deg in ((1.0, 34.38), (0.5, 17.19)):
+        spec = get_terrain(name, difficulty=d)
+        t = jax.tree_util.tree_map(lambda x: x[0], sample(spec, jax.random.PRNGKey(2), 1))
+        xs = np.arange(spec.start_x + 0.05, spec.start_x + spec.length - 0.05, 0.01) + 0.005
+        hm = heightmap(t, (xs[0] - 0.005, xs[-1] + 0.005), (-0.01, 0.01), 0.01)[:, 0]
+        sign = 1.0 if spec.direction == "up" else -1.0
+        want = sign * np.tan(np.radians(deg)) * (xs - spec.start_x)
+        np.testing.assert_allclose(hm[:xs.size], want, atol=0.5 * np.tan(np.radians(deg)) * spec.cell + 2e-3)
+    flat = sample(get_terrain(name, difficulty=0.0), jax.random.PRNGKey(2), 2)
+    _, _, valid, top = _tops(flat)
+    assert np.all(np.abs(top[valid]) < 1.1e-3) and np.abs(np.asarray(flat.ground_z)).max() < 1e-6
+
+
+def test_stones_gaps_and_boxes_heights():
+    """Stepping stones: tops at z = 0 over a pit 20 cm deep, neighbours apart by the gap (0 at difficulty 0, i.e.
+    solid ground; 5 cm at 1); random boxes: heights in the difficulty's range, inside the corridor."""
+    for d in (0.0, 1.0):
+        spec = get_terrain("stones", difficulty=d)
+        t = sample(spec, jax.random.PRNGKey(4), 2)
+        pos, half, valid, top = _tops(t)
+        np.testing.assert_allclose(top[valid], 0.0, atol=1e-6)
+        np.testing.assert_allclose(np.asarray(t.ground_z), -0.2, atol=1e-6)
+        nx, ny = spec._stone_grid()
+        stones = pos[0, : nx * ny].reshape(nx, ny, 3), half[0, : nx * ny].reshape(nx, ny, 3)
+        gap_x = (stones[0][1:, :, 0] - stones[1][1:, :, 0]) - (stones[0][:-1, :, 0] + stones[1][:-1, :, 0])
+        gap_y = (stones[0][:, 1:, 1] - stones[1][:, 1:, 1]) - (stones[0][:, :-1, 1] + stones[1][:, :-1, 1])
+        np.testing.assert_allclose(gap_x, 0.05 * d, atol=1e-6)
+        np.testing.assert_allclose(gap_y, 0.05 * d, atol=1e-6)
+    for d in (0.0, 1.0):
+        spec = get_terrain("boxes", difficulty=d)
+        pos, half, valid, top = _tops(sample(spec, jax.random.PRNGKey(5), 8))
+        lo, hi = DIFFICULTY["boxes"]["height_range"][int(d)]
+        assert valid.all() and top.min() >= min(lo, 1e-3) - 1e-6 and top.max() <= hi + 1e-6
+        assert np.abs(pos[..., 1]).max() <= 0.5 * spec.width + 1e-6
+
+
+def test_difficulty_scales_with_the_robot_and_is_checked():
+    """The table's lengths scale with the robot's leg (angles do not); a difficulty outside [0, 1] fails in one
+    line naming it, from a preset override and from `at_difficulty`."""
+    yu = get_robot("yu2019")
+    k = leg_scale(yu)
+    assert k == pytest.approx((yu.femur_length + yu.tibia_length) / 0.202)
+    base = get_terrain("stairs-up")
+    assert base.at_difficulty(1.0, k).height_range == pytest.approx((0.08 * k, 0.08 * k), rel=1e-5)
+    slope = get_terrain("slope-up")
+    assert slope.at_difficulty(1.0, k).slope_range == slope.at_difficulty(1.0).slope_range
+    # every family gets harder along its own key: the keys' values grow with difficulty
+    for kind, keys in DIFFICULTY.items():
+        for key, (easy, hard) in keys.items():
+            assert all(h >= e for e, h in zip(easy, hard)) and any(h > e for e, h in zip(easy, hard)), (kind, key)
+    with pytest.raises(ValueError, match=r"terrain.difficulty=1.5: must be in \[0, 1\]"):
+        get_terrain("stairs-up", difficulty=1.5)
+    with pytest.raises(ValueError, match=r"terrain.difficulty=-0.1"):
+        base.at_difficulty(-0.1)
+    with pytest.raises(ValueError, match="terrain.direction='sideways'"):
+        get_terrain("stairs-up", direction="sideways")
+    with pytest.raises(ValueError, match="gap_range"):
+        get_terrain("stones", gap_range=[0.09, 0.09])
+
+
+FAMILIES = ("stairs-up", "stairs-down", "slope-up", "slope-down", "stones", "boxes")
+LEVELS = (0.0, 1 / 3, 2 / 3, 1.0)
+
+
+def test_families_walkable_at_zero_and_harder_with_difficulty():
+    """The open-loop Luneckas 2020 tripod (3 cm swing) walks 0.2 m on each new family, 64 envs per family (16 at
+    each of difficulties 0, 1/3, 2/3, 1), all in one rollout: at difficulty 0 every env succeeds (upright, within
+    10 cm of the goal, finite); success never rises from one level to the next by more than one env's share of
+    noise (1/16) and ends at least 75 points below difficulty 0. The features begin at x = 0.1 m, under the
+    front feet, so a 0.2 m walk crosses them."""
+    import dataclasses
+
+    from hexjax.control.gait import GaitController
+    from hexjax.experiments.metrics import goal_errors
+    from hexjax.sim.config import PhysicsConfig
+    from hexjax.sim.rollout import rollout
+    from hexjax.world.terrain import pad_terrain
+
+    n, dist = 16, 0.2
+    robot = get_robot("luneckas2020")
+    specs = [get_terrain(f, start_x=0.1, length=dist + 0.4).at_difficulty(d) for f in FAMILIES for d in LEVELS]
+    m = max(s.max_boxes for s in specs)
+    parts = [pad_terrain(sample(s, jax.random.PRNGKey(i), n), m) for i, s in enumerate(specs)]
+    terr = jax.tree_util.tree_map(lambda *x: np.concatenate(x), *parts)
+    ctrl = GaitController(robot, gait="tripod")
+    n_cycles, duration = ctrl.duration_for(dist)
+    ctrl = dataclasses.replace(ctrl, n_cycles=n_cycles)
+    s = rollout(robot, terr, ctrl, ctrl.default_params(), duration, jax.random.PRNGKey(9),
+                physics=PhysicsConfig(slots_per_leg=3))
+    ok = np.asarray(goal_errors(s, dist).success).reshape(len(FAMILIES), len(LEVELS), n).mean(-1)
+    assert not np.asarray(s.nan).any()
+    for f, rates in zip(FAMILIES, ok):
+        assert rates[0] == 1.0, (f, rates)
+        assert np.all(np.diff(rates) <= 1 / n + 1e-9), (f, rates)
+        assert rates[-1] <= rates[0] - 0.75, (f, rates)

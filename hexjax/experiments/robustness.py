@@ -23,16 +23,19 @@ import numpy as np
 
 from hexjax.world.randomization import AXES as RANDOM_AXES
 
-# terrain axes: the sweep value v sets the terrain spec's range to [v, v]
+# terrain axes: the sweep value v sets the obstacle terrain spec's range to [v, v]; `difficulty` sets any
+# family's difficulty in [0, 1] (`TerrainSpec.at_difficulty`, its lengths scaled to the robot's leg)
 TERRAIN_AXES = {"obstacle_height": "height_range", "obstacle_length": "length_range",
-                "obstacle_width": "width_range", "obstacle_spacing": "spacing_range"}
+                "obstacle_width": "width_range", "obstacle_spacing": "spacing_range", "difficulty": "difficulty"}
 # which way an axis gets harder (+1: larger values are harder), for the envelope
-HARDER = {"obstacle_height": 1, "obstacle_length": 1, "obstacle_width": 1, "obstacle_spacing": -1,
+HARDER = {"obstacle_height": 1, "obstacle_length": 1, "obstacle_width": 1, "obstacle_spacing": -1, "difficulty": 1,
           "friction": -1, "torso_mass_scale": 1, "payload_kg": 1, "payload_offset_m": 1, "kp_scale": -1,
           "torque_scale": -1, "damping_scale": 1, "latency_steps": 1, "force_noise_n": 1, "force_bias_n": 1,
           "force_dropout": 1, "tactile_noise_n": 1, "tactile_bias_n": 1, "tactile_dropout": 1,
           "fault_time_s": -1, "fault_probability": 1}
-CONTROLLERS = ("gait", "tactile")
+CONTROLLERS = ("gait", "tactile", "cpg", "avoid")
+# terrain kinds whose height_range is the height of what stands in the way (the tactile switch's H, Eq. 7)
+HEIGHT_KINDS = ("obstacles", "step", "stairs", "boxes", "rough", "waves")
 ENVELOPE_SUCCESS = 0.9
 
 
@@ -94,22 +97,70 @@ def envelope(values: Sequence[float], successes: Sequence[Tuple[int, int]], axis
 
 def _digest(o) -> str:
     keys = ("controllers", "axis", "batch", "terrain", "robot", "distance", "seed", "randomization", "cone",
-            "iterations")
+            "iterations", "per_env")
     return hashlib.sha256(json.dumps({k: getattr(o, k) for k in keys}, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
-def _controllers(names, robot):
+def _controllers(names, default_robot):
+    """{label: (controller, robot)} for labels 'name' or 'name@robot' (a robot preset or .yaml path; default
+    --robot): gait and tactile (Luneckas 2020 tripod), cpg (Yu 2019, reflexes on), avoid (the tripod steered
+    by the Zhao 2018 planner round the terrain's boxes)."""
+    from hexjax.control.avoid_gait import AvoidGaitController
+    from hexjax.control.cpg import CPGController
     from hexjax.control.gait import GaitController
     from hexjax.control.tactile import TactileGaitController
+    from hexjax.world.presets import get_robot
+    make = {"gait": lambda r: GaitController(r, gait="tripod"),
+            "tactile": lambda r: TactileGaitController(r, gait="tripod"),
+            "cpg": lambda r: CPGController(r), "avoid": lambda r: AvoidGaitController(r)}
     out = {}
-    for name in names:
-        if name == "gait":
-            out[name] = GaitController(robot, gait="tripod")
-        elif name == "tactile":
-            out[name] = TactileGaitController(robot, gait="tripod")
-        else:
-            raise ValueError(f"--controllers {name!r}: use some of {', '.join(CONTROLLERS)}")
+    for label in names:
+        name, _, rname = str(label).partition("@")
+        if name not in make:
+            raise ValueError(f"--controllers {label!r}: use some of {', '.join(CONTROLLERS)} "
+                             "(optionally name@robot)")
+        robot = get_robot(rname) if rname else default_robot
+        out[str(label)] = (make[name](robot), robot)
     return out
+
+
+def _duration(ctrl, distance: float):
+    """(controller with its stop set, seconds of control) for a walk of `distance` m: the Luneckas 2020 gaits
+    stop after the cycles that cover it; the CPG (no stop) walks distance / its nominal speed (one stroke per
+    leader period 2 pi / omega_1) plus a period to start; the avoiding gait gets room for a detour of twice the
+    distance (it stops by itself at the target)."""
+    from hexjax.control.avoid_gait import AvoidGaitController, fast_gait
+    from hexjax.control.cpg import CPGController
+    if isinstance(ctrl, CPGController):
+        p = ctrl.default_params()
+        period = 2 * math.pi / float(p.net.omega[0])
+        return ctrl, distance / (float(p.step_length) / period) + period
+    if isinstance(ctrl, AvoidGaitController):
+        g = fast_gait(ctrl)
+        cycle = float(g.swing_time) * ctrl.pattern.period
+        return ctrl, (math.ceil(2 * distance / ctrl.advance(g)) + 2) * cycle
+    n_cycles, duration = ctrl.duration_for(distance)
+    return dataclasses.replace(ctrl, n_cycles=n_cycles), duration
+
+
+def _avoid_params(ctrl, terr, kind: str, distance: float):
+    """Per-env params of the avoiding gait: target `distance` ahead, the terrain's boxes as its obstacle circles
+    (Zhao 2018 Eq. 1) on obstacle and box terrains (elsewhere the boxes are the ground: none), less those
+    that cover the start or the target (no walk could avoid them), goal tolerance 3 cm."""
+    import jax.numpy as jnp
+
+    from hexjax.control.avoid_gait import field_params
+    from hexjax.plan.fields import Fields
+    from hexjax.world.terrain import obstacle_circles
+    c, r, v = obstacle_circles(terr)
+    b = c.shape[0]
+    target = jnp.broadcast_to(jnp.array([distance, 0.0]), (b, 2))
+    p0 = field_params(ctrl, Fields(start=jnp.zeros((b, 2)), target=target, centres=c, radii=r, valid=v,
+                                   lane=jnp.zeros((b, 2, 2))))
+    margin = r + p0.avoid.robot_radii[:, :1]
+    clear = (jnp.linalg.norm(c - target[:, None], axis=-1) > margin) & (jnp.linalg.norm(c, axis=-1) > margin)
+    v = v & clear & (kind in ("obstacles", "boxes"))
+    return p0.replace(valid=v, avoid=p0.avoid.replace(goal_tol=jnp.full((b,), 0.03, jnp.float32)))
 
 
 def sweep(o) -> Dict:
@@ -118,15 +169,14 @@ def sweep(o) -> Dict:
     from tqdm.auto import tqdm
 
     from hexjax.control.tactile import overcome_height
-
     from hexjax.experiments.metrics import batch_stats, goal_errors
-    from hexjax.sim.config import PhysicsConfig, RolloutConfig
+    from hexjax.sim.config import PhysicsConfig, RolloutConfig, physics_for
     from hexjax.sim.rollout import make_mesh, rollout
     from hexjax.tune.space import with_values
     from hexjax.world.files import read_yaml
     from hexjax.world.presets import get_robot, get_terrain
     from hexjax.world.randomization import randomization_from_dict, sample_perturbation
-    from hexjax.world.terrain import pad_terrain, sample
+    from hexjax.world.terrain import leg_scale, pad_terrain, sample
 
     axes = [parse_axis(a) for a in o.axis]
     if not 1 <= len(axes) <= 2:
@@ -145,7 +195,7 @@ def sweep(o) -> Dict:
     base_rand = randomization_from_dict(raw, source=o.randomization or "randomization")
     base_terrain = get_terrain(o.terrain, length=o.distance + 0.3)
     for name, _ in axes:
-        if name in TERRAIN_AXES and base_terrain.kind != "obstacles":
+        if name in TERRAIN_AXES and name != "difficulty" and base_terrain.kind != "obstacles":
             raise ValueError(f"--axis {name}: needs an obstacle terrain (--terrain {o.terrain!r} is "
                              f"{base_terrain.kind!r})")
     cells = list(itertools.product(*[v for _, v in axes]))
@@ -153,63 +203,87 @@ def sweep(o) -> Dict:
     for values in cells:
         t, r = base_terrain, base_rand
         for (name, _), v in zip(axes, values):
-            if name in TERRAIN_AXES:
+            if name == "difficulty":
+                t = t.at_difficulty(v, leg_scale(robot))
+            elif name in TERRAIN_AXES:
                 t = dataclasses.replace(t, **{TERRAIN_AXES[name]: (v, v)})
             else:
                 r = r.with_value(name, v)
         t.validate()
         t_specs.append(t)
         r_specs.append(r)
-    physics = PhysicsConfig(cone=o.cone, iterations=o.iterations)
+    physics = physics_for(base_terrain.kind, PhysicsConfig(cone=o.cone, iterations=o.iterations,
+                                                           slots_per_leg=base_terrain.slots_per_leg))
     physics.validate()
-    # each cell's envs sharded over as many devices as divide the batch (several GPUs, or a CPU's cores)
-    n_dev = max(d for d in range(1, len(jax.devices()) + 1) if o.batch % d == 0)
+    # each cell's envs sharded over as many devices as divide the batch (several GPUs, or a CPU's cores); with
+    # several processes (jax.distributed) over every device of every process
+    if jax.process_count() > 1:
+        n_dev = len(jax.devices())
+        if o.batch % n_dev:
+            raise ValueError(f"--batch={o.batch}: must be a multiple of the {n_dev} devices of the "
+                             f"{jax.process_count()} processes")
+    else:
+        n_dev = max(d for d in range(1, len(jax.devices()) + 1) if o.batch % d == 0)
     mesh = make_mesh(jax.devices()[:n_dev]) if n_dev > 1 else None
+    lead = jax.process_index() == 0  # writes the partial file; the others only compute their shards
     n_box = max(s.max_boxes for s in t_specs)
     plan = {}
-    for cname, ctrl in ctrls.items():
-        n_cycles, duration = ctrl.duration_for(o.distance)
-        ctrl = dataclasses.replace(ctrl, n_cycles=n_cycles)
+    for cname, (ctrl, rb) in ctrls.items():
+        ctrl, duration = _duration(ctrl, o.distance)
         for r in r_specs:
             r.check_horizon(duration)
-        plan[cname] = (ctrl, duration)
+        plan[cname] = (ctrl, rb, duration)
 
     digest = _digest(o)
     partial = (o.json + ".partial.json") if o.json else ""
     done = {}
-    if partial and os.path.exists(partial):
+    if lead and partial and os.path.exists(partial):
         with open(partial) as f:
             saved = json.load(f)
         if saved.get("digest") == digest:
             done = saved["cells"]
     key = jax.random.PRNGKey(o.seed)
     jobs = [(c, i) for c in ctrls for i in range(len(cells))]
-    bar = tqdm(jobs, desc="robustness", unit="cell", disable=not getattr(o, "progress", True))
+    if jax.process_count() > 1:  # every process skips the cells process 0 has kept
+        from jax.experimental import multihost_utils
+        kept = multihost_utils.broadcast_one_to_all(np.array([f"{c}|{i}" in done for c, i in jobs]))
+        skip = {f"{c}|{i}" for (c, i), k in zip(jobs, np.asarray(kept)) if k}
+    else:
+        skip = set(done)
+    bar = tqdm(jobs, desc="robustness", unit="cell", disable=not getattr(o, "progress", True) or not lead)
     compile_s = {c: 0.0 for c in ctrls}
     for cname, i in bar:
         tag = f"{cname}|{i}"
         bar.set_postfix_str(f"{cname} " + ", ".join(f"{n}={v:g}" for (n, _), v in zip(axes, cells[i])))
-        if tag in done:
+        if tag in skip:
             continue
-        ctrl, duration = plan[cname]
+        ctrl, rb, duration = plan[cname]
         k_t, k_r, k_p = jax.random.split(jax.random.fold_in(key, i), 3)
         terr = pad_terrain(sample(t_specs[i], k_t, o.batch), n_box)
         pert = sample_perturbation(r_specs[i], k_p, o.batch)
         params = ctrl.default_params()
-        if cname == "tactile":  # Eq. 7's H: the cell's highest obstacle
+        kind = cname.partition("@")[0]
+        if kind == "tactile" and t_specs[i].kind in HEIGHT_KINDS:  # Eq. 7's H: the cell's highest obstacle
             params = with_values(params, {"overcome_height": overcome_height(t_specs[i].height_range[1])})
-        summ, st = rollout(robot, terr, ctrl, params, duration, k_r, physics=physics, config=RolloutConfig(),
-                           perturbation=pert, stats=True, mesh=mesh)
+        if kind == "avoid":
+            params = _avoid_params(ctrl, terr, t_specs[i].kind, o.distance)
+        summ, st = rollout(rb, terr, ctrl, params, duration, k_r, physics=physics, config=RolloutConfig(),
+                           perturbation=pert, stats=True, mesh=mesh, params_batched=kind == "avoid")
         errs = goal_errors(summ, o.distance)
         stats = batch_stats(summ, errs)
         k = int(np.asarray(errs.success).sum())
         stats.update(successes=k, success_ci95=list(wilson(k, o.batch)), wall_s=st.run_s, compile_s=st.compile_s,
                      goal_error_cm=100 * float(np.nanmean(np.hypot(np.asarray(errs.dx), np.asarray(errs.dy)))))
+        if getattr(o, "per_env", False):
+            stats["per_env"] = {f: np.asarray(getattr(errs, f)).tolist() for f in ("dx", "dy", "dalpha", "success")}
+            stats["per_env"].update(fell=np.asarray(summ.fell).tolist(), energy_J=np.asarray(summ.energy).tolist())
         compile_s[cname] += st.compile_s
         done[tag] = stats
-        if partial:
+        if partial and lead:
             with open(partial, "w") as f:
                 json.dump({"digest": digest, "cells": done}, f, default=float)
+    if not lead:  # process 0 gathers every cell and writes the results
+        return {"process": jax.process_index(), "cells_run": len(jobs) - len(skip)}
     rows = []
     for cname in ctrls:
         for i, values in enumerate(cells):
@@ -225,8 +299,9 @@ def sweep(o) -> Dict:
     return {"config": dict(controllers=list(ctrls), axes={n: v for n, v in axes}, batch=o.batch, robot=robot.name,
                            terrain=o.terrain, distance_m=o.distance, seed=o.seed, cone=o.cone,
                            iterations=o.iterations, randomization=base_rand.to_dict(),
-                           durations_s={c: plan[c][1] for c in ctrls}, backend=jax.default_backend(),
-                           devices=n_dev),
+                           robots={c: plan[c][1].name for c in ctrls},
+                           durations_s={c: plan[c][2] for c in ctrls}, backend=jax.default_backend(),
+                           devices=n_dev, processes=jax.process_count()),
             "cells": rows, "envelope": env, "compile_s": compile_s}
 
 
@@ -238,12 +313,36 @@ def _host_devices():
         os.environ["XLA_FLAGS"] = f"{flags} --xla_force_host_platform_device_count={os.cpu_count() or 1}".strip()
 
 
+def _distributed(o) -> None:
+    """Join JAX's multi-process runtime (`jax.distributed`) when --processes > 1: every process runs the same
+    command with its own --process-id, the global mesh spans all their devices, process 0 writes."""
+    n, pid, coord = o.processes, o.process_id, str(o.coordinator)
+    if not (isinstance(n, int) and n >= 1):
+        raise ValueError(f"--processes={n!r}: must be a whole number >= 1")
+    if n == 1:
+        return
+    if not (isinstance(pid, int) and 0 <= pid < n):
+        raise ValueError(f"--process-id={pid!r}: must be in [0, {n - 1}]")
+    host, _, port = coord.rpartition(":")
+    if not host or not port.isdigit():
+        raise ValueError(f"--coordinator={coord!r}: write host:port (process 0's address)")
+    import jax
+    jax.config.update("jax_cpu_collectives_implementation", "gloo")  # CPU hosts; GPUs use NCCL
+    jax.distributed.initialize(coordinator_address=coord, num_processes=n, process_id=pid)
+
+
 def run(o, entry) -> Dict:
     _host_devices()
-    return sweep(o)
+    _distributed(o)
+    res = sweep(o)
+    if "process" in res:  # not process 0: nothing to write
+        o.json = o.png = ""
+    return res
 
 
 def report(res: Dict) -> str:
+    if "process" in res:
+        return f"process {res['process']}: ran its shards of {res['cells_run']} cells; process 0 writes the results"
     c = res["config"]
     names = list(c["axes"])
     head = (f"{'controller':<10} " + " ".join(f"{n:>16}" for n in names)

@@ -83,7 +83,9 @@ class SimModel:
             warn = int(self.mjx_model.opt._impl.warn_overflow) & ~int(OverflowType.ITERATIONS)
             self.mjx_model = self.mjx_model.tree_replace({"opt._impl.warn_overflow": warn})
         else:
-            self.mjx_model = mjx.put_model(self.mj_model)
+            # on this process's own first device: MJX's default, jax.devices()[0], belongs to process 0 when several
+            # processes share a run (jax.distributed), and arrays on it cannot be used here
+            self.mjx_model = mjx.put_model(self.mj_model, device=jax.local_devices()[0])
         m = self.mj_model
         gid = lambda n: mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, n)
         self.ground_geom = gid("ground")
@@ -106,8 +108,9 @@ class SimModel:
         # Computed on the JAX implementation also for 'warp', whose per-world contact and row counts it gives.
         # (MJX's JAX implementation lacks the netforce contact sensor: the map is built on the sensorless model)
         m_jax = m if impl == "jax" else mujoco.MjModel.from_xml_string(build_mjcf(robot, physics))
-        d = mjx.make_data(m_jax, impl="jax")
-        geoms = contact_geoms(self.mjx_model if impl == "jax" else mjx.put_model(m_jax, impl="jax"), d)
+        dev = jax.local_devices()[0]
+        d = mjx.make_data(m_jax, impl="jax", device=dev)
+        geoms = contact_geoms(self.mjx_model if impl == "jax" else mjx.put_model(m_jax, impl="jax", device=dev), d)
         self.ncon = geoms.shape[0]
         self.contact_foot = np.stack([(geoms == g).any(1) for g in self.foot_geoms], 1).astype(np.float32)
         self.contact_pad = np.stack([(geoms == g).any(1) for g in self.pad_geoms], 1).astype(np.float32)
@@ -140,7 +143,7 @@ class SimModel:
         if self.impl == "warp":
             return mjx.make_data(self.mj_model, impl="warp", naconmax=max(1, self.ncon) * batch,
                                  njmax=max(1, self.nefc))
-        return mjx.make_data(self.mjx_model)
+        return mjx.make_data(self.mjx_model, device=jax.local_devices()[0])
 
     def init_data(self, torso_xy_yaw, template=None):
         """mjx.Data in the neutral stance at (x, y, yaw) (3,) on flat ground (`template`: from `make_data`)."""

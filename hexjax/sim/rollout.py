@@ -142,8 +142,8 @@ def rollout(robot: RobotSpec, terrain: Terrain, controller: Controller, params, 
     controller init per env); mesh: optional `jax.sharding.Mesh` with an axis named 'batch' to shard the envs
     over several devices; perturbation: optional batched `hexjax.world.randomization.Perturbation` (leading axis
     B, from `sample_perturbation`): per-env dynamics, sensing and faults, applied in every control step
-    (`hexjax.sim.perturb`; backend='mjx'). Returns a `Summary` with leading axis B, or (Summary,
-    RolloutStats) with `stats`.
+    (`hexjax.sim.perturb`; every backend: on 'c' the model fields are set in each env's MjModel). Returns a
+    `Summary` with leading axis B, or (Summary, RolloutStats) with `stats`.
     All inputs are checked on the host before anything is traced."""
     t0 = time.perf_counter()
     n_ctrl = _check_static(robot, controller, duration, physics, config)
@@ -164,12 +164,10 @@ def rollout(robot: RobotSpec, terrain: Terrain, controller: Controller, params, 
     perturbed = perturbation is not None
     if perturbed:
         check_perturbation(perturbation, b)
-        if backend != "mjx":
-            raise ValueError(f"backend={backend!r}: a perturbation (per-env randomisation) is applied on "
-                             "backend='mjx' only so far")
     if backend == "c":
         out, compile_s = rollout_c(robot, terrain, controller, params, n_ctrl, key, physics=physics,
-                                   sensors=sensors, config=config, params_batched=params_batched, nthread=nthread)
+                                   sensors=sensors, config=config, params_batched=params_batched, nthread=nthread,
+                                   perturbation=perturbation)
         compiled = "compiled" if compile_s else "process"
     else:
         impl = "warp" if backend == "warp" else "jax"
@@ -183,17 +181,20 @@ def rollout(robot: RobotSpec, terrain: Terrain, controller: Controller, params, 
             if b % n_dev:
                 raise ValueError(f"terrain batch size={b} must be a multiple of the mesh's {n_dev} 'batch' devices")
             shard, replicated = NamedSharding(mesh, P("batch")), NamedSharding(mesh, P())
-            terrain = jax.device_put(terrain, shard)
-            keys = jax.device_put(keys, shard)
-            params = jax.device_put(params, shard if params_batched else replicated)
-            model = jax.device_put(model, replicated)
+            terrain = put_global(terrain, shard)
+            keys = put_global(keys, shard)
+            params = put_global(params, shard if params_batched else replicated)
+            model = put_global(model, replicated)
             if perturbed:
-                perturbation = jax.device_put(perturbation, shard)
+                perturbation = put_global(perturbation, shard)
         args = (model, params, terrain, keys) + ((sm.make_data(b),) if impl == "warp" else ())
-        if perturbed:
-            args += (None, perturbation)
+        if perturbed:  # after the data template (warp's, or None)
+            args += ((perturbation,) if impl == "warp" else (None, perturbation))
         out, cs = fn.call(*args)
         compile_s, compiled = cs.compile_s, cs.source
+        if mesh is not None and jax.process_count() > 1:  # every process gets the whole batch's summary
+            from jax.experimental import multihost_utils
+            out = multihost_utils.process_allgather(out, tiled=True)
     if not stats:
         return out
     jax.block_until_ready(out)
@@ -228,6 +229,21 @@ def check_perturbation(perturbation, b: int):
     n = np.shape(perturbation.friction)
     if len(n) != 1 or n[0] != b:
         raise ValueError(f"perturbation batch size={n[0] if n else 'unbatched'}: must equal the terrain's {b} envs")
+
+
+def put_global(tree, sharding: NamedSharding):
+    """`tree` placed with `sharding`. In one process, `jax.device_put`. Across processes (`jax.distributed`,
+    a mesh over several hosts' devices) every process holds the same whole arrays (drawn from the same keys)
+    and gives each of its devices its own slice."""
+    if jax.process_count() == 1:
+        return jax.device_put(tree, sharding)
+
+    def one(x):
+        if not hasattr(x, "shape"):  # static leaves of the model
+            return x
+        a = np.asarray(x)
+        return jax.make_array_from_callback(a.shape, sharding, lambda idx: a[idx])
+    return jax.tree_util.tree_map(one, tree)
 
 
 def make_mesh(devices=None) -> Mesh:

@@ -30,10 +30,14 @@ def get_robot(name: str) -> RobotSpec:
 
 def get_terrain(name: str, **overrides) -> TerrainSpec:
     """`TerrainSpec` of preset `name` (configs/terrains/<name>.yaml) or of a YAML file path, with keys
-    replaced by `overrides` (checked like the file's own)."""
+    replaced by `overrides` (checked like the file's own). A `difficulty` key sets the keys its family scales
+    (`hexjax.world.terrain.DIFFICULTY`; lengths for the Luneckas 2020 robot), over any the file writes."""
     path = resolve("terrains", name)
     raw = {**read_yaml(path), **overrides}
-    return build(TerrainSpec, raw, str(path), "terrain")
+    spec = build(TerrainSpec, raw, str(path), "terrain")
+    if spec.difficulty is not None:  # the family's scaled keys set from it (`TerrainSpec.at_difficulty`)
+        spec = spec.at_difficulty(spec.difficulty)
+    return spec
 
 
 def luneckas2020() -> RobotSpec:

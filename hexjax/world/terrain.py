@@ -10,6 +10,13 @@ Categories (Luneckas 2020 Sect. 2.2, Eq. 16; Yu 2019 Sect. 6; Chen 2019 Sect. 3.
                    height small (3-5 cm) / large (6-8 cm), length 2-3 cm, random width;
   step (40 mm), ditches (18 / 40 / 80 mm deep), rugged wave patch (400 x 800 mm, peaks ~178 mm),
   random uniform roughness, flat.
+Families of the legged-robot benchmarks (legged_gym / Isaac Lab terrain generators, sized for a hexapod):
+  slope up / down (a ramp of thin slices), stairs up / down, stepping stones over a pit, random boxes.
+
+Difficulty: every family has a scale `difficulty` in [0, 1] (`TerrainSpec.at_difficulty`, table `DIFFICULTY`)
+that sets the keys which make it hard (heights, slope, gaps) between an easy and a hard end. The lengths of
+the table are for the Luneckas 2020 robot (femur + tibia 20.2 cm) and scale with the robot's leg
+(`leg_scale`): stairs rise 2-8 cm for it.
 """
 
 from __future__ import annotations
@@ -17,14 +24,14 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
-from typing import Tuple
+from typing import Optional, Tuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-KINDS = ("flat", "obstacles", "step", "ditch", "waves", "rough")
+KINDS = ("flat", "obstacles", "step", "ditch", "waves", "rough", "slope", "stairs", "stones", "boxes")
 MAX_EXTENT = 50.0  # m: no terrain dimension beyond this
 MAX_BOXES = 20_000  # boxes per terrain: a batch holds this many per env
 
@@ -66,9 +73,20 @@ class TerrainSpec:
     ditch_count: int = 3
     ditch_width_range: Tuple[float, float] = (0.06, 0.09)
     ditch_gap_range: Tuple[float, float] = (0.25, 0.35)  # solid ground between ditches
-    # grids (waves, rough)
+    # grids (waves, rough); slope: the slices' length along x
     cell: float = 0.02
     taper: float = 0.0  # waves: heights fade to 0 over this many m inside the patch's edges (0: cut off)
+    # slope / stairs
+    direction: str = "up"  # 'up' or 'down' (down: the robot starts on a platform, the ground plane is below)
+    slope_range: Tuple[float, float] = (0.2, 0.2)  # ramp angle, rad
+    stair_count: int = 6
+    tread_range: Tuple[float, float] = (0.1, 0.12)  # stairs: tread along x (height_range: the riser)
+    # stepping stones: square stones on a grid of this pitch, tops at z = 0, over a pit height_range deep
+    stone_pitch: float = 0.08
+    gap_range: Tuple[float, float] = (0.02, 0.02)  # space between neighbouring stones
+    # random boxes: this many, sized length_range x width_range x height_range, anywhere in the corridor
+    box_count: int = 40
+    difficulty: Optional[float] = None  # set by `at_difficulty` (None: the ranges as written)
     slots_per_leg: int = 2  # terrain boxes each leg collides with at a time (see sim.model)
 
     def validate(self) -> None:
@@ -87,7 +105,7 @@ class TerrainSpec:
         if not (math.isfinite(self.taper) and 0 <= self.taper <= 0.5 * min(self.length, self.width)):
             raise ValueError(f"terrain.taper={self.taper!r}: must be in [0, half the patch's shorter side]")
         for f in ("spacing_range", "height_range", "length_range", "width_range", "step_length_range",
-                  "ditch_width_range", "ditch_gap_range"):
+                  "ditch_width_range", "ditch_gap_range", "tread_range", "gap_range"):
             lo, hi = getattr(self, f)
             if not (math.isfinite(lo) and math.isfinite(hi)):
                 raise ValueError(f"terrain.{f}={(lo, hi)!r}: must be finite")
@@ -105,11 +123,44 @@ class TerrainSpec:
             raise ValueError(f"terrain.step_side={self.step_side!r}: use 'right', 'left' or 'full'")
         if not 1 <= self.ditch_count <= 100:
             raise ValueError(f"terrain.ditch_count={self.ditch_count!r}: must be in [1, 100]")
+        if self.direction not in ("up", "down"):
+            raise ValueError(f"terrain.direction={self.direction!r}: use 'up' or 'down'")
+        lo, hi = self.slope_range
+        if not (math.isfinite(lo) and math.isfinite(hi) and 0 <= lo <= hi <= 0.8):
+            raise ValueError(f"terrain.slope_range={(lo, hi)!r}: must be finite with 0 <= min <= max <= 0.8 rad")
+        if not 1 <= self.stair_count <= 100:
+            raise ValueError(f"terrain.stair_count={self.stair_count!r}: must be in [1, 100]")
+        if not 1 <= self.box_count <= 5000:
+            raise ValueError(f"terrain.box_count={self.box_count!r}: must be in [1, 5000]")
+        if self.kind == "stairs" and self.tread_range[0] <= 0:
+            raise ValueError(f"terrain.tread_range={self.tread_range!r}: must be > 0")
+        if not (math.isfinite(self.stone_pitch) and 0.01 <= self.stone_pitch <= 1.0):
+            raise ValueError(f"terrain.stone_pitch={self.stone_pitch!r}: must be in [0.01, 1] m")
+        if self.gap_range[1] >= self.stone_pitch:
+            raise ValueError(f"terrain.gap_range={self.gap_range!r}: must stay below stone_pitch={self.stone_pitch!r}")
+        if self.difficulty is not None and not (math.isfinite(self.difficulty) and 0 <= self.difficulty <= 1):
+            raise ValueError(f"terrain.difficulty={self.difficulty!r}: must be in [0, 1]")
         if not 1 <= self.slots_per_leg <= 8:
             raise ValueError(f"terrain.slots_per_leg={self.slots_per_leg!r}: must be in [1, 8]")
         if self.max_boxes > MAX_BOXES:
             raise ValueError(f"terrain: {self.max_boxes} boxes per terrain (length={self.length!r}, width="
                              f"{self.width!r}, cell / spacing); at most {MAX_BOXES}")
+
+    def at_difficulty(self, difficulty: float, scale: float = 1.0) -> "TerrainSpec":
+        """This family with the keys of `DIFFICULTY[kind]` set for `difficulty` in [0, 1] (linear between the
+        table's easy and hard ends; lengths times `scale`, e.g. `leg_scale(robot)`), the rest kept."""
+        d = float(difficulty)
+        if not (math.isfinite(d) and 0 <= d <= 1):
+            raise ValueError(f"terrain.difficulty={difficulty!r}: must be in [0, 1]")
+        if not (math.isfinite(scale) and 0.1 <= scale <= 10):
+            raise ValueError(f"terrain difficulty scale={scale!r}: must be in [0.1, 10]")
+        new = {}
+        for key, (easy, hard) in DIFFICULTY.get(self.kind, {}).items():
+            s = 1.0 if key in UNSCALED else scale
+            new[key] = tuple(round(s * (e + d * (h - e)), 6) for e, h in zip(easy, hard))
+        out = dataclasses.replace(self, difficulty=d, **new)
+        out.validate()
+        return out
 
     # Static sizes -------------------------------------------------------------------------------
     def _lattice_n(self) -> int:
@@ -117,7 +168,10 @@ class TerrainSpec:
         return int(math.ceil(radius / (0.5 * math.sqrt(3) * self.spacing_range[0]))) + 1
 
     def _grid_shape(self) -> Tuple[int, int]:
-        return int(round(self.length / self.cell)), int(round(self.width / self.cell))
+        return max(1, int(round(self.length / self.cell))), max(1, int(round(self.width / self.cell)))
+
+    def _stone_grid(self) -> Tuple[int, int]:
+        return max(1, int(round(self.length / self.stone_pitch))), max(1, int(round(self.width / self.stone_pitch)))
 
     @property
     def max_boxes(self) -> int:
@@ -132,8 +186,41 @@ class TerrainSpec:
             return 1
         if self.kind == "ditch":
             return self.ditch_count + 1
+        if self.kind == "slope":
+            return self._grid_shape()[0] + 1
+        if self.kind == "stairs":
+            return self.stair_count + 1
+        if self.kind == "stones":
+            nx, ny = self._stone_grid()
+            return nx * ny + 2
+        if self.kind == "boxes":
+            return self.box_count
         nx, ny = self._grid_shape()
         return nx * ny
+
+
+# The keys each family's difficulty sets: (value at difficulty 0, value at 1). Lengths are for the Luneckas 2020
+# robot (femur + tibia 0.202 m; `leg_scale` scales them to another robot); angles (UNSCALED) are not scaled.
+# At 0 every family is nearly flat ground; at 1 it is past what the open-loop gait's 3 cm swing can take.
+DIFFICULTY = {
+    "obstacles": {"height_range": ((0.005, 0.01), (0.07, 0.08))},  # Luneckas 2020 fields: 3-5 cm small, 6-8 large
+    "step": {"height_range": ((0.005, 0.005), (0.08, 0.08))},  # Yu 2019 steps: 40, 50 mm
+    "ditch": {"height_range": ((0.005, 0.005), (0.1, 0.1))},  # Yu 2019 ditches: 18, 40, 80 mm deep
+    "waves": {"height_range": ((0.005, 0.01), (0.15, 0.178))},  # Chen 2019 patch: peaks to ~178 mm
+    "rough": {"height_range": ((0.0, 0.005), (0.0, 0.04))},
+    "slope": {"slope_range": ((0.0, 0.0), (0.6, 0.6))},  # 0-34 deg
+    "stairs": {"height_range": ((0.01, 0.01), (0.08, 0.08))},  # risers 1-8 cm (2 cm at 1/7)
+    "stones": {"gap_range": ((0.0, 0.0), (0.05, 0.05))},  # stones 8 cm square at 0, 3 cm with 5 cm gaps at 1
+    "boxes": {"height_range": ((0.0, 0.005), (0.04, 0.08))},
+}
+UNSCALED = ("slope_range",)
+LUNECKAS2020_LEG = 0.082 + 0.12  # femur + tibia, m (Luneckas 2020 Sect. 2.1)
+
+
+def leg_scale(robot) -> float:
+    """How much longer `robot`'s leg (femur + tibia) is than the Luneckas 2020 robot's: the factor the lengths
+    of the difficulty table are multiplied by."""
+    return (robot.femur_length + robot.tibia_length) / LUNECKAS2020_LEG
 
 
 def _obstacle_field(spec: TerrainSpec, key) -> Terrain:
@@ -243,6 +330,99 @@ def _rough(spec: TerrainSpec, key) -> Terrain:
     return _grid_boxes(spec, h)
 
 
+def _columns(x_lo, x_hi, top, bottom, half_y, valid=None):
+    """(pos, half, valid) of boxes spanning x_lo..x_hi along x, |y| <= half_y, from z = bottom up to z = top
+    (arrays (n,))."""
+    n = x_lo.shape[0]
+    height = jnp.maximum(top - bottom, 1e-3)
+    pos = jnp.stack([0.5 * (x_lo + x_hi), jnp.zeros(n), bottom + 0.5 * height], -1)
+    half = jnp.stack([0.5 * (x_hi - x_lo), jnp.full(n, half_y), 0.5 * height], -1)
+    return pos, half, jnp.ones((n,), bool) if valid is None else valid
+
+
+def _slope(spec: TerrainSpec, key) -> Terrain:
+    """A ramp of angle slope_range over `length` from start_x, as slices `cell` long (a staircase of risers
+    tan(angle) * cell, as the heightfield slopes of legged_gym are), then a landing. 'up' climbs from the
+    ground; 'down' descends from a start platform at z = 0 to the ground plane below."""
+    angle = jax.random.uniform(key, (), minval=spec.slope_range[0], maxval=spec.slope_range[1])
+    n = spec._grid_shape()[0]
+    dx = spec.length / n
+    x_lo = spec.start_x + dx * jnp.arange(n + 1.0)
+    x_hi = (x_lo + dx).at[-1].set(spec.start_x + spec.length + 1.0)
+    rise = jnp.tan(angle) * dx * (jnp.arange(n + 1.0) + 0.5).at[-1].set(n)  # slice centres, then the landing
+    half_y = 0.5 * spec.width + 0.5
+    if spec.direction == "up":
+        pos, half, valid = _columns(x_lo, x_hi, rise, jnp.zeros(n + 1), half_y)
+        return Terrain(box_pos=pos, box_half=half, box_valid=valid, ground_z=jnp.zeros(()))
+    ground = -jnp.tan(angle) * spec.length
+    x_lo = jnp.concatenate([jnp.array([-1.0]), x_lo[:-1]])  # the start platform, then the slices
+    x_hi = jnp.concatenate([jnp.array([spec.start_x]), x_hi[:-1]])
+    top = -jnp.concatenate([jnp.zeros(1), rise[:-1]])
+    pos, half, valid = _columns(x_lo, x_hi, top, jnp.full(n + 1, ground), half_y)
+    return Terrain(box_pos=pos, box_half=half, box_valid=valid & (top > ground + 1e-3), ground_z=ground)
+
+
+def _stairs(spec: TerrainSpec, key) -> Terrain:
+    """`stair_count` steps from start_x, risers height_range and treads tread_range (drawn once per terrain),
+    then a landing. 'up' climbs from the ground; 'down' descends from a start platform at z = 0 to the ground
+    plane, which is the last step's tread."""
+    k1, k2 = jax.random.split(key)
+    n = spec.stair_count
+    riser = jax.random.uniform(k1, (), minval=spec.height_range[0], maxval=spec.height_range[1])
+    tread = jax.random.uniform(k2, (), minval=spec.tread_range[0], maxval=spec.tread_range[1])
+    j = jnp.arange(n + 1.0)
+    half_y = 0.5 * spec.width + 0.5
+    if spec.direction == "up":  # steps 1..n, the last one the landing; entry n unused
+        x_lo = spec.start_x + tread * j
+        x_hi = jnp.where(j >= n - 1, spec.start_x + spec.length + 1.0, x_lo + tread)
+        pos, half, valid = _columns(x_lo, x_hi, riser * (j + 1), jnp.zeros(n + 1), half_y, j < n)
+        return Terrain(box_pos=pos, box_half=half, box_valid=valid, ground_z=jnp.zeros(()))
+    ground = -riser * n
+    x_lo = jnp.where(j == 0, -1.0, spec.start_x + tread * (j - 1))
+    x_hi = spec.start_x + tread * j
+    pos, half, valid = _columns(x_lo, x_hi, -riser * j, jnp.full(n + 1, ground), half_y, j < n)
+    return Terrain(box_pos=pos, box_half=half, box_valid=valid, ground_z=ground)
+
+
+def _stones(spec: TerrainSpec, key) -> Terrain:
+    """Stepping stones: a grid of square stones (side stone_pitch - gap, gap from gap_range once per terrain)
+    with tops at z = 0 over a pit height_range deep, between a start platform and a far landing."""
+    k1, k2 = jax.random.split(key)
+    nx, ny = spec._stone_grid()
+    gap = jax.random.uniform(k1, (), minval=spec.gap_range[0], maxval=spec.gap_range[1])
+    depth = jax.random.uniform(k2, (), minval=spec.height_range[0], maxval=spec.height_range[1])
+    px, py = spec.length / nx, spec.width / ny
+    x, y = jnp.meshgrid(spec.start_x + (jnp.arange(nx) + 0.5) * px, (jnp.arange(ny) + 0.5) * py - 0.5 * spec.width,
+                        indexing="ij")
+    m = nx * ny
+    half_x = jnp.full(m, 0.5 * px) - 0.5 * gap
+    half_y = jnp.full(m, 0.5 * py) - 0.5 * gap
+    end = spec.start_x + spec.length
+    # the platforms stop half a gap short of the stones, so the first and last rows stand alone too
+    plat_lo = jnp.array([-1.0, end + 0.5 * gap])
+    plat_hi = jnp.array([spec.start_x - 0.5 * gap, end + 1.0])
+    pos = jnp.concatenate([jnp.stack([x.reshape(-1), y.reshape(-1), jnp.full(m, -0.5) * depth], -1),
+                           jnp.stack([0.5 * (plat_lo + plat_hi), jnp.zeros(2), jnp.full(2, -0.5) * depth], -1)])
+    half = jnp.concatenate([jnp.stack([half_x, half_y, jnp.full(m, 0.5) * depth], -1),
+                            jnp.stack([0.5 * (plat_hi - plat_lo), jnp.full(2, 0.5 * spec.width + 0.5),
+                                       jnp.full(2, 0.5) * depth], -1)])
+    return Terrain(box_pos=pos, box_half=half, box_valid=jnp.ones((m + 2,), bool), ground_z=-depth)
+
+
+def _boxes(spec: TerrainSpec, key) -> Terrain:
+    """Discrete random boxes (legged_gym's 'discrete obstacles'): box_count boxes anywhere in the corridor,
+    footprints length_range x width_range, heights height_range; they may overlap."""
+    ks = jax.random.split(key, 5)
+    n = spec.box_count
+    u = lambda k, r: jax.random.uniform(k, (n,), minval=r[0], maxval=r[1])
+    x = spec.start_x + spec.length * jax.random.uniform(ks[0], (n,))
+    y = spec.width * (jax.random.uniform(ks[1], (n,)) - 0.5)
+    h = jnp.maximum(u(ks[2], spec.height_range), 1e-3)
+    pos = jnp.stack([x, y, 0.5 * h], -1)
+    half = jnp.stack([0.5 * u(ks[3], spec.length_range), 0.5 * u(ks[4], spec.width_range), 0.5 * h], -1)
+    return Terrain(box_pos=pos, box_half=half, box_valid=jnp.ones((n,), bool), ground_z=jnp.zeros(()))
+
+
 def _flat(spec: TerrainSpec, key) -> Terrain:
     del spec, key
     return Terrain(box_pos=jnp.array([[0.0, 0.0, -5.0]]), box_half=jnp.full((1, 3), 0.01),
@@ -250,7 +430,8 @@ def _flat(spec: TerrainSpec, key) -> Terrain:
 
 
 _GENERATORS = {"flat": _flat, "obstacles": _obstacle_field, "step": _step, "ditch": _ditch,
-               "waves": _waves, "rough": _rough}
+               "waves": _waves, "rough": _rough, "slope": _slope, "stairs": _stairs, "stones": _stones,
+               "boxes": _boxes}
 
 
 @functools.partial(jax.jit, static_argnums=0)

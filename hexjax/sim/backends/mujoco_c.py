@@ -32,9 +32,11 @@ import mujoco
 import numpy as np
 from mujoco import rollout as mj_rollout
 
+from hexjax.sim import perturb
 from hexjax.sim.config import PhysicsConfig, RolloutConfig, SensorConfig
 from hexjax.sim.mjcf import PARKED_Z, build_mjcf, sensor_layout
 from hexjax.sim.model import actuator_forces, obs_from_sensordata
+from hexjax.sim.perturb import MIN_FRICTION
 from hexjax.sim.step import Summary, accumulate, end_pose, init_acc, settle_steps, substeps
 from hexjax.world.robot import RobotSpec
 
@@ -48,6 +50,7 @@ class _Template:
     box_bodies: np.ndarray
     box_bvh: np.ndarray
     ground_geom: int
+    torso_body: int
     qpos0: np.ndarray
     ctrl0: np.ndarray
     nstate: int
@@ -64,12 +67,15 @@ def _template(robot: RobotSpec, physics: PhysicsConfig, n_boxes: int) -> _Templa
     bodies = np.array([mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, f"terrain_{j}") for j in range(n_boxes)], dtype=int)
     return _Template(model=m, box_geoms=np.array([gid(f"terrain_{j}") for j in range(n_boxes)], dtype=int),
                      box_bodies=bodies, box_bvh=np.asarray(m.body_bvhadr[bodies], dtype=int),
-                     ground_geom=gid("ground"), qpos0=np.array(m.key_qpos[key]), ctrl0=np.array(m.key_ctrl[key]),
+                     ground_geom=gid("ground"),
+                     torso_body=mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, "torso"),
+                     qpos0=np.array(m.key_qpos[key]), ctrl0=np.array(m.key_ctrl[key]),
                      nstate=mujoco.mj_stateSize(m, _FULL), pool=[])
 
 
-def _models(tp: _Template, box_pos, box_half, box_valid, ground_z):
-    """One MjModel per env (from the reused pool) with that env's terrain boxes and ground height."""
+def _models(tp: _Template, box_pos, box_half, box_valid, ground_z, pert=None):
+    """One MjModel per env (from the reused pool) with that env's terrain boxes and ground height, and with
+    `pert` (a host copy of the chunk's `Perturbation`) its draw's model fields (`_perturb_model`)."""
     n = box_pos.shape[0]
     while len(tp.pool) < n:
         tp.pool.append(mujoco.MjModel.__copy__(tp.model))
@@ -85,15 +91,62 @@ def _models(tp: _Template, box_pos, box_half, box_valid, ground_z):
         mi.geom_aabb[tp.box_geoms, 3:] = half[i]
         mi.bvh_aabb[tp.box_bvh, 3:] = half[i]
         mi.geom_pos[tp.ground_geom, 2] = ground_z[i]
+        _perturb_model(tp, mi, None if pert is None else jax.tree_util.tree_map(lambda x: x[i], pert))
     return out
+
+
+def _perturb_model(tp: _Template, mi: mujoco.MjModel, p) -> None:
+    """MjModel `mi` (a pooled copy: every field is written from the template, so a reused copy keeps nothing of
+    its last env) with the draw `p` of one env, as `hexjax.sim.perturb.model` does to an mjx.Model: the robot's
+    ground contacts are declared pairs (their friction set), its terrain-box contacts take the larger of their
+    two geoms' friction (every geom's set). A limp leg's gains are zeroed later, at its onset (`rollout_c`)."""
+    m0, b = tp.model, tp.torso_body
+    if p is None:
+        for f in ("geom_friction", "pair_friction", "body_mass", "body_ipos", "body_inertia", "actuator_gainprm",
+                  "actuator_biasprm", "actuator_forcerange", "dof_damping"):
+            getattr(mi, f)[:] = getattr(m0, f)
+        return
+    f = float(p.friction)
+    mi.geom_friction[:] = m0.geom_friction
+    mi.pair_friction[:] = m0.pair_friction
+    if f >= 0:
+        mi.geom_friction[:, 0] = max(f, MIN_FRICTION)
+        mi.pair_friction[:, :2] = max(f, MIN_FRICTION)
+    mt = m0.body_mass[b] * float(p.torso_mass_scale)
+    pk, off = float(p.payload_kg), np.asarray(p.payload_offset, np.float64)
+    total = mt + pk
+    ipos0 = m0.body_ipos[b]
+    ipos = ipos0 + pk * off / total
+    r_t, r_p = ipos0 - ipos, ipos0 + off - ipos
+    point = lambda r: np.array([r[1] ** 2 + r[2] ** 2, r[0] ** 2 + r[2] ** 2, r[0] ** 2 + r[1] ** 2])
+    mi.body_mass[:] = m0.body_mass
+    mi.body_ipos[:] = m0.body_ipos
+    mi.body_inertia[:] = m0.body_inertia
+    mi.body_mass[b] = total
+    mi.body_ipos[b] = ipos
+    mi.body_inertia[b] = m0.body_inertia[b] * float(p.torso_mass_scale) + mt * point(r_t) + pk * point(r_p)
+    _gains(tp, mi, float(p.kp_scale) * np.ones(m0.nu))
+    mi.actuator_forcerange[:] = m0.actuator_forcerange * float(p.torque_scale)
+    mi.dof_damping[:] = m0.dof_damping
+    mi.dof_damping[6:] *= float(p.damping_scale)
+
+
+def _gains(tp: _Template, mi: mujoco.MjModel, scale) -> None:
+    """Servo gains kp and kv of `mi` set to the template's times `scale` (nu,)."""
+    mi.actuator_gainprm[:] = tp.model.actuator_gainprm
+    mi.actuator_biasprm[:] = tp.model.actuator_biasprm
+    mi.actuator_gainprm[:, 0] *= scale
+    mi.actuator_biasprm[:, 1:3] *= scale[:, None]
 
 
 def rollout_c(robot: RobotSpec, terrain, controller, params, n_ctrl: int, key, *, physics: PhysicsConfig,
               sensors: SensorConfig, config: RolloutConfig, params_batched: bool = False,
-              nthread: Optional[int] = None, chunk: int = 8192, progress: bool = False):
+              nthread: Optional[int] = None, chunk: int = 8192, progress: bool = False, perturbation=None):
     """`hexjax.sim.rollout.rollout` with backend='c' (checked there): (the same `Summary`, with no traces;
     seconds spent compiling the controller step). nthread: MuJoCo threads (default: all cores); chunk: envs
-    per pass (bounds memory; the controller is compiled once for this size)."""
+    per pass (bounds memory; the controller is compiled once for this size). perturbation: a batched
+    `Perturbation`, applied as on the MJX path: its model fields in each env's MjModel, its sensing and action
+    effects by `hexjax.sim.perturb` in the controller step."""
     if config.record:
         raise ValueError("backend='c' keeps no per-step traces: use RolloutConfig(record=False) or backend='mjx'")
     nthread = int(nthread or os.cpu_count() or 1)
@@ -121,7 +174,9 @@ def rollout_c(robot: RobotSpec, terrain, controller, params, n_ctrl: int, key, *
     yaw0 = np.asarray(jax.vmap(lambda k: jax.random.uniform(jax.random.split(k)[0], (), minval=-config.yaw_noise,
                                                             maxval=config.yaw_noise))(keys))
     k_ctrl = jax.vmap(lambda k: jax.random.split(k)[1])(keys)
-    step_fn, init_fn, ctrl0_fn = _controller_fns(controller, sensors, 0 if params_batched else None)
+    step_fn, init_fn, ctrl0_fn = _controller_fns(controller, sensors, 0 if params_batched else None,
+                                                 perturbation is not None, n_settle)
+    pert_all = None if perturbation is None else jax.device_get(perturbation)
     acc_fn = _accumulator(config, controller.dt, n_settle)
 
     outs = []
@@ -135,10 +190,13 @@ def rollout_c(robot: RobotSpec, terrain, controller, params, n_ctrl: int, key, *
             idx = np.arange(c * chunk, (c + 1) * chunk) % b  # the last chunk wraps round; its extras are dropped
             take = lambda x: jax.tree_util.tree_map(lambda a: a[idx], x)
             prm = take(params) if params_batched else params
-            models = _models(tp, box_pos[idx], box_half[idx], box_valid[idx], ground_z[idx])
+            pert = None if pert_all is None else jax.tree_util.tree_map(lambda a: np.asarray(a)[idx], pert_all)
+            models = _models(tp, box_pos[idx], box_half[idx], box_valid[idx], ground_z[idx], pert)
             cstate = init_fn(prm, k_ctrl[idx])
             ctrl0 = ctrl0_fn(prm)
             ctrl0 = np.broadcast_to(tp.ctrl0 if ctrl0 is None else np.asarray(ctrl0), (chunk, nu)).astype(np.float64)
+            pstate = None if pert is None else jax.vmap(perturb.init_state)(jnp.asarray(ctrl0, jnp.float32))
+            limp = None if pert is None else np.nonzero(np.asarray(pert.fault_kind) == perturb.LIMP)[0]
             # initial state: neutral stance at (0, 0, yaw0), joints at the settle posture
             qpos = np.broadcast_to(tp.qpos0, (chunk, nq)).copy()
             yw = yaw0[idx]
@@ -151,18 +209,31 @@ def rollout_c(robot: RobotSpec, terrain, controller, params, n_ctrl: int, key, *
             sd_out = np.empty((chunk, n_sub, m0.nsensordata))
             acc = jax.vmap(init_acc)(jnp.stack([jnp.zeros(chunk), jnp.zeros(chunk), jnp.asarray(yw, jnp.float32)], -1))
             gz = jnp.asarray(ground_z[idx], jnp.float32)
+            extra = () if pert is None else (pert, pstate, ctrl0.astype(np.float32))
             if c == 0:  # compile the controller step (timed apart, as the MJX rollout's compile is)
                 t0 = time.perf_counter()
-                jax.block_until_ready(step_fn(prm, cstate, qpos, state[:, 1 + nq:1 + nq + nv], sens, state[:, 0]))
+                jax.block_until_ready(step_fn(prm, cstate, qpos, state[:, 1 + nq:1 + nq + nv], sens, state[:, 0],
+                                              np.int32(0), *extra))
                 compile_s = time.perf_counter() - t0
             for i in range(n_settle + n_ctrl):
                 q, v = state[:, 1:1 + nq], state[:, 1 + nq:1 + nq + nv]
-                new_cstate, action, tactile = step_fn(prm, cstate, q, v, sens, state[:, 0])
-                if i >= n_settle:
-                    cstate = new_cstate
-                    action = np.asarray(action, np.float64)
+                if pert is None:
+                    new_cstate, action, tactile = step_fn(prm, cstate, q, v, sens, state[:, 0], np.int32(i))
+                    if i >= n_settle:
+                        cstate = new_cstate
+                        action = np.asarray(action, np.float64)
+                    else:
+                        action = ctrl0
                 else:
-                    action = ctrl0
+                    # as the MJX step: a limp leg's gains are zero from its onset (the model for this step)
+                    t_walk = (i - n_settle) * controller.dt
+                    for e in limp:
+                        if float(pert.fault_time[e]) <= t_walk < float(pert.fault_time[e]) + controller.dt:
+                            _gains(tp, models[e], np.where(np.arange(nu) // 3 == int(pert.fault_leg[e]), 0.0,
+                                                           float(pert.kp_scale[e])))
+                    cstate, pstate, action, tactile = step_fn(prm, cstate, q, v, sens, state[:, 0], np.int32(i),
+                                                              *extra[:1], pstate, extra[2])
+                    action = np.asarray(action, np.float64)
                 control = np.repeat(action[:, None, :], n_sub, axis=1)
                 pool.rollout(models, datas, state, control, control_spec=mujoco.mjtState.mjSTATE_CTRL,
                              nstep=n_sub, state=st_out, sensordata=sd_out, skip_checks=True)
@@ -187,15 +258,32 @@ def rollout_c(robot: RobotSpec, terrain, controller, params, n_ctrl: int, key, *
 
 
 @functools.lru_cache(maxsize=16)
-def _controller_fns(controller, sensors: SensorConfig, p_axis):
-    """Jitted, vmapped controller step (from MuJoCo's sensordata), init and settle posture of one chunk."""
-    def step(params, cstate, qpos, qvel, sens, t):
+def _controller_fns(controller, sensors: SensorConfig, p_axis, perturbed: bool = False, n_settle: int = 0):
+    """Jitted, vmapped controller step (from MuJoCo's sensordata), init and settle posture of one chunk. With
+    `perturbed` the step also takes the chunk's draws, their `PerturbState` and the settle posture, and does
+    what the MJX control step does around the controller: perturbed readings in, the settle posture while
+    settling, latency and a locked leg on the way out; the tactile flags it returns are the true ones."""
+    def step(params, cstate, qpos, qvel, sens, t, i):
         obs = obs_from_sensordata(sensors, qpos.astype(jnp.float32), qvel.astype(jnp.float32),
                                   sens.astype(jnp.float32), t.astype(jnp.float32))
         new, action = controller.step(params, cstate, obs)
         return new, action, obs.tactile
 
-    step_b = jax.jit(jax.vmap(step, in_axes=(p_axis, 0, 0, 0, 0, 0)))
+    def step_perturbed(params, cstate, qpos, qvel, sens, t, i, pert, pstate, ctrl0):
+        obs = obs_from_sensordata(sensors, qpos.astype(jnp.float32), qvel.astype(jnp.float32),
+                                  sens.astype(jnp.float32), t.astype(jnp.float32))
+        t_walk = (i - n_settle) * controller.dt
+        new, action = controller.step(params, cstate, perturb.observe(obs, pert, i, t_walk, sensors))
+        walking = i >= n_settle
+        action = jnp.where(walking, action, ctrl0)
+        cstate = jax.tree_util.tree_map(lambda a, b: jnp.where(walking, a, b), new, cstate)
+        pstate, action = perturb.act(pstate, action, obs.qpos, pert, t_walk)
+        return cstate, pstate, action, obs.tactile
+
+    if perturbed:
+        step_b = jax.jit(jax.vmap(step_perturbed, in_axes=(p_axis, 0, 0, 0, 0, 0, None, 0, 0, 0)))
+    else:
+        step_b = jax.jit(jax.vmap(step, in_axes=(p_axis, 0, 0, 0, 0, 0, None)))
     init_b = jax.jit(jax.vmap(controller.init, in_axes=(p_axis, 0)))
     # (n, nu) for batched params, (nu,) for shared ones (broadcast by the caller), or None: the stance
     ctrl0_b = jax.jit(jax.vmap(controller.initial_action) if p_axis == 0 else controller.initial_action)
