@@ -209,9 +209,13 @@ def test_difficulty_scales_with_the_robot_and_is_checked():
     assert base.at_difficulty(1.0, k).height_range == pytest.approx((0.08 * k, 0.08 * k), rel=1e-5)
     slope = get_terrain("slope-up")
     assert slope.at_difficulty(1.0, k).slope_range == slope.at_difficulty(1.0).slope_range
+    big = get_terrain("stones").at_difficulty(1.0, 1.6)  # stones grow with the robot: gaps stay below the pitch
+    assert big.stone_pitch == pytest.approx(0.128) and big.gap_range == pytest.approx((0.08, 0.08))
     # every family gets harder along its own key: the keys' values grow with difficulty
     for kind, keys in DIFFICULTY.items():
-        for key, (easy, hard) in keys.items():
+        ranges = {k: v for k, v in keys.items() if isinstance(v[0], tuple)}
+        assert ranges, kind
+        for key, (easy, hard) in ranges.items():
             assert all(h >= e for e, h in zip(easy, hard)) and any(h > e for e, h in zip(easy, hard)), (kind, key)
     with pytest.raises(ValueError, match=r"terrain.difficulty=1.5: must be in \[0, 1\]"):
         get_terrain("stairs-up", difficulty=1.5)

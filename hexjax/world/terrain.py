@@ -16,7 +16,7 @@ Families of the legged-robot benchmarks (legged_gym / Isaac Lab terrain generato
 Difficulty: every family has a scale `difficulty` in [0, 1] (`TerrainSpec.at_difficulty`, table `DIFFICULTY`)
 that sets the keys which make it hard (heights, slope, gaps) between an easy and a hard end. The lengths of
 the table are for the Luneckas 2020 robot (femur + tibia 20.2 cm) and scale with the robot's leg
-(`leg_scale`): stairs rise 2-8 cm for it.
+(`leg_scale`): stairs rise 1-8 cm for it.
 """
 
 from __future__ import annotations
@@ -157,7 +157,10 @@ class TerrainSpec:
         new = {}
         for key, (easy, hard) in DIFFICULTY.get(self.kind, {}).items():
             s = 1.0 if key in UNSCALED else scale
-            new[key] = tuple(round(s * (e + d * (h - e)), 6) for e, h in zip(easy, hard))
+            if isinstance(easy, tuple):
+                new[key] = tuple(round(s * (e + d * (h - e)), 6) for e, h in zip(easy, hard))
+            else:
+                new[key] = round(s * (easy + d * (hard - easy)), 6)
         out = dataclasses.replace(self, difficulty=d, **new)
         out.validate()
         return out
@@ -210,7 +213,8 @@ DIFFICULTY = {
     "rough": {"height_range": ((0.0, 0.005), (0.0, 0.04))},
     "slope": {"slope_range": ((0.0, 0.0), (0.6, 0.6))},  # 0-34 deg
     "stairs": {"height_range": ((0.01, 0.01), (0.08, 0.08))},  # risers 1-8 cm (2 cm at 1/7)
-    "stones": {"gap_range": ((0.0, 0.0), (0.05, 0.05))},  # stones 8 cm square at 0, 3 cm with 5 cm gaps at 1
+    # stones 8 cm square at 0, 3 cm with 5 cm gaps at 1 (the pitch scales with the robot, so the gaps stay below it)
+    "stones": {"gap_range": ((0.0, 0.0), (0.05, 0.05)), "stone_pitch": (0.08, 0.08)},
     "boxes": {"height_range": ((0.0, 0.005), (0.04, 0.08))},
 }
 UNSCALED = ("slope_range",)
