@@ -97,7 +97,7 @@ def envelope(values: Sequence[float], successes: Sequence[Tuple[int, int]], axis
 
 def _digest(o) -> str:
     keys = ("controllers", "axis", "batch", "terrain", "robot", "distance", "seed", "randomization", "cone",
-            "iterations", "per_env")
+            "iterations", "per_env", "backend")
     return hashlib.sha256(json.dumps({k: getattr(o, k) for k in keys}, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
@@ -185,6 +185,8 @@ def sweep(o) -> Dict:
         raise ValueError(f"--axis {axes[0][0]} given twice")
     if not (isinstance(o.batch, int) and o.batch >= 1):
         raise ValueError(f"--batch={o.batch!r}: must be a whole number >= 1")
+    if o.backend != "mjx" and jax.process_count() > 1:
+        raise ValueError(f"--backend={o.backend}: several processes need --backend mjx")
     if not (0 < o.distance <= 5):
         raise ValueError(f"--distance={o.distance!r}: must be in (0, 5] m")
     robot = get_robot(o.robot)
@@ -224,6 +226,8 @@ def sweep(o) -> Dict:
                              f"{jax.process_count()} processes")
     else:
         n_dev = max(d for d in range(1, len(jax.devices()) + 1) if o.batch % d == 0)
+    if o.backend != "mjx":  # warp and c run on one device / the host's threads
+        n_dev = 1
     mesh = make_mesh(jax.devices()[:n_dev]) if n_dev > 1 else None
     lead = jax.process_index() == 0  # writes the partial file; the others only compute their shards
     n_box = max(s.max_boxes for s in t_specs)
@@ -268,7 +272,8 @@ def sweep(o) -> Dict:
         if kind == "avoid":
             params = _avoid_params(ctrl, terr, t_specs[i].kind, o.distance)
         summ, st = rollout(rb, terr, ctrl, params, duration, k_r, physics=physics, config=RolloutConfig(),
-                           perturbation=pert, stats=True, mesh=mesh, params_batched=kind == "avoid")
+                           perturbation=pert, stats=True, mesh=mesh, params_batched=kind == "avoid",
+                           backend=o.backend)
         errs = goal_errors(summ, o.distance)
         stats = batch_stats(summ, errs)
         k = int(np.asarray(errs.success).sum())
@@ -301,7 +306,7 @@ def sweep(o) -> Dict:
                            iterations=o.iterations, randomization=base_rand.to_dict(),
                            robots={c: plan[c][1].name for c in ctrls},
                            durations_s={c: plan[c][2] for c in ctrls}, backend=jax.default_backend(),
-                           devices=n_dev, processes=jax.process_count()),
+                           devices=n_dev, processes=jax.process_count(), physics_backend=o.backend),
             "cells": rows, "envelope": env, "compile_s": compile_s}
 
 
