@@ -50,13 +50,7 @@ def model(sm, m, p, t):
     pair_friction = m.pair_friction.at[:, 0].set(f).at[:, 1].set(f)
     # torso scaled, payload a point mass at its offset; the body's frame of inertia is the torso's (identity
     # body_iquat, built so in hexjax.sim.mjcf), the payload's off-diagonal inertia dropped
-    mt = m.body_mass[b] * p.torso_mass_scale
-    total = mt + p.payload_kg
-    ipos0 = m.body_ipos[b]
-    ipos = ipos0 + p.payload_kg * p.payload_offset / total
-    r_t, r_p = ipos0 - ipos, ipos0 + p.payload_offset - ipos
-    point = lambda r: jnp.stack([r[1] ** 2 + r[2] ** 2, r[0] ** 2 + r[2] ** 2, r[0] ** 2 + r[1] ** 2])
-    inertia = m.body_inertia[b] * p.torso_mass_scale + mt * point(r_t) + p.payload_kg * point(r_p)
+    total, ipos, inertia = torso_with_payload(m.body_mass[b], m.body_ipos[b], m.body_inertia[b], p)
     limp = _fault_on(p, t, LIMP)
     gain = jnp.where(limp, 0.0, p.kp_scale)
     return m.replace(
@@ -69,6 +63,17 @@ def model(sm, m, p, t):
         actuator_forcerange=m.actuator_forcerange * p.torque_scale,
         dof_damping=m.dof_damping.at[6:].multiply(p.damping_scale),
     )
+
+
+def torso_with_payload(mass, ipos0, inertia0, p, xp=jnp):
+    """(mass, centre of mass, diagonal inertia) of the torso scaled by the draw `p` with its payload, a point
+    mass at its offset (the payload's off-diagonal inertia dropped); `xp`: jnp (MJX) or np (MuJoCo C)."""
+    mt = mass * p.torso_mass_scale
+    total = mt + p.payload_kg
+    ipos = ipos0 + p.payload_kg * p.payload_offset / total
+    r_t, r_p = ipos0 - ipos, ipos0 + p.payload_offset - ipos
+    point = lambda r: xp.stack([r[1] ** 2 + r[2] ** 2, r[0] ** 2 + r[2] ** 2, r[0] ** 2 + r[1] ** 2])
+    return total, ipos, inertia0 * p.torso_mass_scale + mt * point(r_t) + p.payload_kg * point(r_p)
 
 
 def observe(obs, p, i, t, sensors: SensorConfig):

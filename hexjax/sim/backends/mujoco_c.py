@@ -112,19 +112,13 @@ def _perturb_model(tp: _Template, mi: mujoco.MjModel, p) -> None:
     if f >= 0:
         mi.geom_friction[:, 0] = max(f, MIN_FRICTION)
         mi.pair_friction[:, :2] = max(f, MIN_FRICTION)
-    mt = m0.body_mass[b] * float(p.torso_mass_scale)
-    pk, off = float(p.payload_kg), np.asarray(p.payload_offset, np.float64)
-    total = mt + pk
-    ipos0 = m0.body_ipos[b]
-    ipos = ipos0 + pk * off / total
-    r_t, r_p = ipos0 - ipos, ipos0 + off - ipos
-    point = lambda r: np.array([r[1] ** 2 + r[2] ** 2, r[0] ** 2 + r[2] ** 2, r[0] ** 2 + r[1] ** 2])
+    p64 = p.replace(torso_mass_scale=float(p.torso_mass_scale), payload_kg=float(p.payload_kg),
+                    payload_offset=np.asarray(p.payload_offset, np.float64))
     mi.body_mass[:] = m0.body_mass
     mi.body_ipos[:] = m0.body_ipos
     mi.body_inertia[:] = m0.body_inertia
-    mi.body_mass[b] = total
-    mi.body_ipos[b] = ipos
-    mi.body_inertia[b] = m0.body_inertia[b] * float(p.torso_mass_scale) + mt * point(r_t) + pk * point(r_p)
+    mi.body_mass[b], mi.body_ipos[b], mi.body_inertia[b] = perturb.torso_with_payload(
+        m0.body_mass[b], m0.body_ipos[b], m0.body_inertia[b], p64, xp=np)
     _gains(tp, mi, float(p.kp_scale) * np.ones(m0.nu))
     mi.actuator_forcerange[:] = m0.actuator_forcerange * float(p.torque_scale)
     mi.dof_damping[:] = m0.dof_damping
