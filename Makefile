@@ -16,12 +16,13 @@ setup: $(BIN)/hexjax
 demo: setup
 	$(BIN)/hexjax evaluate --gait tripod --distance 1.0 --batch 8 --json out/evaluate_tripod.json
 
-# two workers (one per core of the reference machine), the slowest tests handed out first
-# (tests/conftest.py) and one at a time (--maxschedchunk=1: by default xdist hands each worker a block of
-# consecutive tests, which gave one worker every slow test: 27 min against 19); the slowest 15 are listed at the end;
+# two workers (one per core of the reference machine), the slowest tests handed out first and one at a time
+# (tests/conftest.py's scheduler: xdist's default hands each worker a block of consecutive tests, which gave one
+# worker every slow test, 27 min against 19; tests sharing an expensive module fixture go out together);
+# the slowest 15 are listed at the end;
 # HEXJAX_REQUIRE_WARP: the test extra installs warp-lang, so its absence fails instead of skipping
 test: setup
-	HEXJAX_REQUIRE_WARP=1 $(BIN)/python -m pytest -q -n 2 --maxschedchunk=1 --durations=15 tests
+	HEXJAX_REQUIRE_WARP=1 $(BIN)/python -m pytest -q -n 2 --durations=15 tests
 
 bench: setup
 	$(BIN)/hexjax bench --json out/bench_cpu.json

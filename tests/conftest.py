@@ -10,16 +10,48 @@ import pytest  # noqa: E402
 _PEAKS = []
 
 # The slowest tests on 2 cores with a cold cache (compile-bound), slowest first: handed out first, they
-# keep the two workers busy to the end instead of leaving one of them a long test at the finish.
-SLOW_FIRST = ("test_cpg_gradient_matches_central_differences", "test_families_walkable_at_zero_and_harder_with_difficulty",
+# keep the two workers busy to the end instead of leaving one of them a long test at the finish. A test of
+# SHARED_FIXTURES takes its group along with it.
+SLOW_FIRST = ("test_every_backend_honours_the_same_draws", "test_cpg_gradient_matches_central_differences",
+              "test_families_walkable_at_zero_and_harder_with_difficulty",
               "test_tuning_is_deterministic_and_resumes", "test_two_processes_give_the_per_env_numbers_of_one",
               "test_brax_ppo_trains", "test_gradient_matches_central_differences_per_group",
+              "test_converged_jacobian_matches_unrolled_and_central_differences",
               "test_es_baseline_improves", "test_smooth_rollout_tends_to_hard_rollout",
               "test_evaluate_obstacles_lose_distance", "test_sharded_rollout_matches_unsharded",
               "test_planner_steers_the_mjx_robot", "test_planned_motion_crosses_the_patch",
               "test_tripod_tetrapod_wave_walk", "test_flat_walk_straight_1m", "test_a_compiled_rollout_is_kept",
               "test_toe_forces_point_up", "test_mjx_pad_touch", "test_warp_backend_walks_like_mjx",
               "test_mujoco_c_backend_walks_like_mjx")
+
+
+# Tests that share an expensive module-scoped fixture, by test function name -> the fixture. pytest-xdist hands
+# each group to one worker, which runs it in one go, so the fixture is built once (handed out one test at a
+# time, as the other tests are, the perturbed walks were built four times: 980 s of a cold run).
+# xdist's own `xdist_group` marker has no effect with pytest 9.2 (xdist 3.8 renames `item._nodeid`, which
+# pytest 9 no longer reads), hence this list and the scheduler below.
+SHARED_FIXTURES = {
+    "test_every_backend_honours_the_same_draws": "perturbed_walks",
+    "test_same_key_gives_bit_identical_results": "perturbed_walks",
+    "test_each_perturbation_does_what_it_should": "perturbed_walks",
+    "test_mujoco_c_backend_walks_like_mjx": "mjx_run",
+    "test_warp_backend_walks_like_mjx": "mjx_run",
+    "test_converged_jacobian_matches_unrolled_and_central_differences": "standing",
+    "test_forces_and_acceleration_jacobian_against_unrolled": "standing",
+}
+
+
+def pytest_xdist_make_scheduler(config, log):
+    """One test per unit of work, slowest first (the collection order), except the groups of SHARED_FIXTURES,
+    each one unit; a worker holds at most about three tests it has not started."""
+    from xdist.scheduler import LoadScopeScheduling
+
+    class SharedFixtureScheduling(LoadScopeScheduling):
+        def _split_scope(self, nodeid):
+            name = nodeid.split("::")[-1].split("[")[0]
+            return SHARED_FIXTURES.get(name, nodeid)
+
+    return SharedFixtureScheduling(config, log)
 
 
 def pytest_collection_modifyitems(items):

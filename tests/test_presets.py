@@ -32,8 +32,15 @@ def test_shipped_presets_load_with_the_papers_numbers():
     for name in preset_names("robots"):
         get_robot(name).validate()
     assert set(experiments()) >= {"luneckas2020", "yu2019-step", "yu2019-ditch", "zhao2018", "zhao2018-mjx",
-                                  "chen2019", "chen2019-incenter"}
-    assert set(commands()) == {"evaluate", "bench", "tune", "render", "ppo", "terrain", "robustness"}
+                                  "zhao2018-perception", "chen2019", "chen2019-incenter"}
+    assert set(commands()) == {"evaluate", "bench", "tune", "render", "ppo", "terrain", "robustness", "perceive"}
+    # Zhao 2018 Sect. 5: Kinect V1 57 x 43 deg, 0.8-4.0 m; Velodyne PUCK 360 x 30 deg, up to 100 m
+    from hexjax.perceive.sensors import get_sensor
+    kin, puck = get_sensor("kinect_v1"), get_sensor("velodyne_puck")
+    assert (kin.kind, kin.fov_h, kin.fov_v, kin.range_min, kin.range_max) == ("camera", 57.0, 43.0, 0.8, 4.0)
+    assert (puck.kind, puck.fov_h, puck.fov_v, puck.range_max) == ("lidar", 360.0, 30.0, 100.0)
+    for name in preset_names("sensors"):
+        get_sensor(name).validate(lun)
 
 
 def test_presets_are_found_from_any_working_directory(tmp_path):

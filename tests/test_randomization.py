@@ -110,6 +110,8 @@ def perturbed_walks():
     return {name: i for i, name in enumerate(ROWS)}, run(), run(), other
 
 
+# the tests of this fixture run on one pytest-xdist worker, one after the other (tests/conftest.py,
+# SHARED_FIXTURES): built once per worker, its three backends' walks cost about 4 min on a cold cache
 def test_same_key_gives_bit_identical_results(perturbed_walks):
     _, s1, s2, _ = perturbed_walks
     for x, y in zip(jax.tree_util.tree_leaves(s1), jax.tree_util.tree_leaves(s2)):

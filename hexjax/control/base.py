@@ -13,8 +13,12 @@ pytree; everything a controller remembers between steps lives in a `state` pytre
                                                the (18,) joint position targets, rad
     initial_action(params) -> (18,) or None    the joint targets to settle in (None: the robot's stance)
     trace(state, obs) -> pytree or None        what `RolloutConfig(record=True)` keeps per step
+    sensor, perceive_every                     a range sensor (`hexjax.perceive.sensors.RangeSensor`) or None
+    perceive(params, state, scan, key) -> state   every `perceive_every` control steps of the walk, the
+                                               control step casts the sensor's rays against the env's terrain
+                                               from the torso's pose and hands the scan over (before `step`)
 
-`init`, `step`, `initial_action` and `trace` are pure JAX on one env; the rollout vmaps them.
+`init`, `step`, `initial_action`, `trace` and `perceive` are pure JAX on one env; the rollout vmaps them.
 """
 
 from __future__ import annotations
@@ -75,3 +79,13 @@ class Controller:
     def trace(self, state, obs) -> Any:
         """A pytree recorded per control step with `RolloutConfig(record=True)`; None: nothing."""
         return None
+
+    #: a `hexjax.perceive.sensors.RangeSensor` the control step scans the terrain with, or None (no scans)
+    sensor: Any = None
+    #: control steps between scans (the first at the walk's first step)
+    perceive_every: int = 1
+
+    def perceive(self, params, state, scan, key) -> Any:
+        """The state after taking in one `hexjax.perceive.raycast.Scan` (world frame); key: for any sampling
+        (RANSAC). Called only when `sensor` is set; the default keeps the state."""
+        return state

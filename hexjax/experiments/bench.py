@@ -17,17 +17,21 @@ from tqdm.auto import tqdm
 from hexjax.control.avoid_gait import AvoidGaitController
 from hexjax.control.cpg import CPGController
 from hexjax.control.gait import GaitController
+from hexjax.control.perceive_gait import PerceivingAvoidGait
 from hexjax.control.tactile import TactileGaitController
 from hexjax.sim.config import PhysicsConfig, RolloutConfig, physics_for
 from hexjax.sim.model import batch_model, sim_model
 from hexjax.sim.rollout import BACKENDS, make_mesh, rollout
+from hexjax.perceive.sensors import get_sensor
 from hexjax.world.presets import get_robot, get_terrain
 from hexjax.world.terrain import sample
 
 # the controllers a bench row can run: the Luneckas 2020 open-loop gait, the Yu 2019 CPG, the Luneckas 2020
-# tactile switch, and the gait steered by the Zhao 2018 planner (37 candidates scored every control step)
+# tactile switch, the gait steered by the Zhao 2018 planner (37 candidates scored every control step), and
+# that planner steered by what the Kinect preset perceives (a scan, map, RANSAC and circles every 5 steps)
 CONTROLLERS = {"gait": GaitController, "cpg": CPGController, "tactile": TactileGaitController,
-               "avoid": AvoidGaitController}
+               "avoid": AvoidGaitController,
+               "perceive": lambda robot, gait: PerceivingAvoidGait(robot, gait=gait, sensor=get_sensor("kinect_v1"))}
 
 
 def mujoco_c_steps_per_s(robot: str, terrain: str, physics: PhysicsConfig, seconds: float = 2.0) -> float:
@@ -72,17 +76,20 @@ def bench(robot: str = "luneckas2020", batches: Sequence[int] = (16, 64, 256), s
 
     controller: a comma list of 'gait' (the Luneckas 2020 open-loop gait), 'cpg' (Yu 2019 CPG with reflexes and FSM),
     'tactile' (the Luneckas 2020 gait with the tactile overcoming switch), 'avoid' (the Luneckas 2020 gait steered by the
-    Zhao 2018 planner, scoring its 37 candidates every control step); 'both' means 'gait,cpg'. With 'gait' in the
-    list every other controller's row gets `overhead_vs_gait` = gait rate / its rate - 1."""
+    Zhao 2018 planner, scoring its 37 candidates every control step), 'perceive' (the same, planning round what the
+    kinect_v1 preset perceives: `hexjax.control.perceive_gait`); 'both' means 'gait,cpg'. With 'gait' in the
+    list every other controller's row gets `overhead_vs_gait` = gait rate / its rate - 1; with 'avoid' and
+    'perceive', the perceive rows get `perception_overhead` = avoid rate / perceive rate - 1 (the cost of
+    perception in the control loop) and `rays_per_s_per_env`."""
     if not isinstance(repeats, int) or repeats < 0:
         raise ValueError(f"repeats={repeats!r}: must be an integer >= 0")
     for b in batches:
         if not isinstance(b, int) or b < 1:
             raise ValueError(f"batches entry {b!r}: must be an integer >= 1")
     names = ["gait", "cpg"] if controller == "both" else controller.split(",")
-    bad = [n for n in names if n not in ("gait", "cpg", "tactile", "avoid")]
+    bad = [n for n in names if n not in CONTROLLERS]
     if bad or not names:
-        raise ValueError(f"controller={controller!r}: a comma list of 'gait', 'cpg', 'tactile', 'avoid' (or 'both')")
+        raise ValueError(f"controller={controller!r}: a comma list of {', '.join(map(repr, CONTROLLERS))} (or 'both')")
     backends = backend.split(",")
     bad = [x for x in backends if x not in BACKENDS]
     if bad or not backends:
@@ -134,12 +141,21 @@ def bench(robot: str = "luneckas2020", batches: Sequence[int] = (16, 64, 256), s
     for r in rows:
         r["mujoco_c_1thread_steps_per_s"] = round(ref[r["terrain"]], 1)
         r["ratio_vs_mujoco_c_1thread"] = round(r["env_steps_per_s"] / ref[r["terrain"]], 3)
+    rate = {(r["terrain"], r["batch"], r["controller"], r["backend"]): r["env_steps_per_s"] for r in rows}
     if "gait" in ctrls:
-        rate = {(r["terrain"], r["batch"], r["controller"], r["backend"]): r["env_steps_per_s"] for r in rows}
         for r in rows:
             if r["controller"] != "gait":
                 r["overhead_vs_gait"] = round(rate[(r["terrain"], r["batch"], "gait", r["backend"])]
                                               / r["env_steps_per_s"] - 1.0, 3)
+    if "perceive" in ctrls:
+        rays = ctrls["perceive"].sensor.n_rays
+        scans = int(np.ceil(sim_seconds / ctrls["perceive"].dt / ctrls["perceive"].perceive_every))
+        for r in rows:
+            if r["controller"] == "perceive":
+                r["rays_per_s_per_env"] = round(rays * scans / r["run_s"], 1)
+                if "avoid" in ctrls:
+                    r["perception_overhead"] = round(rate[(r["terrain"], r["batch"], "avoid", r["backend"])]
+                                                     / r["env_steps_per_s"] - 1.0, 3)
     dev = jax.devices()[0]
     return dict(robot=robot, gait=gait, controller=controller, backends=backend, nthread=nthread or os.cpu_count(),
                 sim_seconds=sim_seconds, physics_steps_per_env=n_phys,
@@ -160,6 +176,12 @@ def format_bench(res: Dict) -> str:
         lines.append(f"{r.get('backend', 'mjx'):<7} {r['terrain']:<11} {r.get('controller', 'gait'):<7} {r['pairs']:5d} {r['batch']:7d} "
                      f"{r['compile_s']:9.1f} {r['env_steps_per_s']:12.0f} "
                      f"{r['mujoco_c_1thread_steps_per_s']:13.0f} {r['ratio_vs_mujoco_c_1thread']:6.2f} {extra:>8}")
+    for r in res["rows"]:
+        if "rays_per_s_per_env" in r:
+            cost = f", perception costs {100 * r['perception_overhead']:+.1f} % against avoid" \
+                if "perception_overhead" in r else ""
+            lines.append(f"perceive {r['terrain']} B={r['batch']}: {r['rays_per_s_per_env']:,.0f} rays/s per env in the "
+                         f"loop{cost}")
     return "\n".join(lines)
 
 

@@ -8,7 +8,7 @@ A file holds:
     entry:   the module that runs it; it defines run(opts, entry) -> result dict, report(result) -> str and,
              where it draws, plot(result, png_path) -> [written paths]
     options: the command-line flags, each {default, help} and optionally choices, a preset kind (robots,
-             terrains, tune: a preset name or a .yaml path), the suffixes of an output file, or `repeat` (the
+             terrains, tune, sensors: a preset name or a .yaml path), the suffixes of an output file, or `repeat` (the
              flag may be given several times); the type is the default's or `type`'s (a list default takes a
              comma list; a false default is a switch)
     preset:  the experiment's fixed numbers (terrains, variants, durations): a copy with other numbers is a
@@ -81,8 +81,8 @@ def _option(source: str, name: str, spec) -> Option:
     if spec.get("type") not in (None, *TYPES):
         raise ValueError(f"{source}: options.{name}.type={spec['type']!r}: use one of {sorted(TYPES)}")
     pk = spec.get("preset")
-    if pk is not None and pk not in ("robots", "terrains", "tune"):
-        raise ValueError(f"{source}: options.{name}.preset={pk!r}: use robots, terrains or tune")
+    if pk is not None and pk not in ("robots", "terrains", "tune", "sensors"):
+        raise ValueError(f"{source}: options.{name}.preset={pk!r}: use robots, terrains, tune or sensors")
     out = spec.get("output")
     return Option(name=name, default=spec["default"], help=str(spec.get("help", "")),
                   choices=tuple(spec["choices"]) if spec.get("choices") is not None else None, preset=pk,

@@ -75,8 +75,11 @@ def _compiled(robot: RobotSpec, physics: PhysicsConfig, sensors: SensorConfig, c
         # forward once so site positions exist before the first slot assignment
         d0 = mjx.forward(m_shared, d0)
 
+        # the range sensor's noise (controllers with a `sensor` only: other programs stay as they were)
+        k_sense = jax.random.fold_in(key, 1) if getattr(controller, "sensor", None) is not None else None
+
         def body(carry, i):
-            return control_step(carry, i, params, terrain, m_shared, ctrl0, pert)
+            return control_step(carry, i, params, terrain, m_shared, ctrl0, pert, k_sense)
 
         if cfg.remat:
             policy = REMAT_POLICY if cfg.solver_grad == "implicit" else None
@@ -153,6 +156,9 @@ def rollout(robot: RobotSpec, terrain: Terrain, controller: Controller, params, 
                              or config.remat):
         raise ValueError(f"backend={backend!r} is forward only: the rollout config's gradient options "
                          f"(solver_grad, grad_window, grad_clip, remat) need backend='mjx'")
+    if backend == "c" and getattr(controller, "sensor", None) is not None:
+        raise ValueError(f"backend='c': {type(controller).__name__} scans the terrain with a range sensor, which "
+                         "the MJX control step casts; use backend='mjx' or 'warp'")
     if backend != "mjx" and mesh is not None:
         raise ValueError(f"backend={backend!r}: a device mesh is supported with backend='mjx' only")
     if not hasattr(terrain, "box_pos") or np.ndim(terrain.box_pos) != 3:

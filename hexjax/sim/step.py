@@ -19,6 +19,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from hexjax.perceive import raycast
 from hexjax.sim import perturb
 from hexjax.sim.config import PhysicsConfig, RolloutConfig, SensorConfig
 from hexjax.sim.grad import clip_cotangent, cut_gradient
@@ -210,17 +211,28 @@ class progress_to:
 
 
 def make_control_step(sm: SimModel, sensors: SensorConfig, cfg: RolloutConfig, controller, n_settle: int):
-    """`step(carry, i, params, terrain, m_shared, ctrl0, pert=None) -> (carry, record)` of one env for
+    """`step(carry, i, params, terrain, m_shared, ctrl0, pert=None, sense_key=None) -> (carry, record)` of one env for
     `lax.scan`, with carry = (mjx.Data, controller state, accumulators) and record the step's traces (None
     unless `cfg.record`). `ctrl0` (18,): the joint targets held while settling. With `pert` (one env's
     `Perturbation`) the carry has a fourth member, a `hexjax.sim.perturb.PerturbState`, and the draw acts on
     the env's model, its sensor readings and the action (`hexjax.sim.perturb`); the summary's tactile counts
-    and the recorded forces stay the true ones."""
+    and the recorded forces stay the true ones. A controller with a range `sensor` gets a scan of the terrain
+    from the torso's simulated pose every `perceive_every` steps of the walk (`controller.perceive`, before its
+    step); `sense_key` (one env's PRNG key) draws the scans' noise. The scan is a `lax.cond` on the step index,
+    which is the same for every env, so under `vmap` it runs on scan steps only."""
     n_sub = substeps(sm.physics, controller.dt)
     foot_sites = jnp.asarray(sm.foot_sites)
     dt = sm.physics.timestep
 
-    def step(carry, i, params, terrain, m_shared, ctrl0, pert=None):
+    sensor = getattr(controller, "sensor", None)
+    every = int(getattr(controller, "perceive_every", 1))
+
+    def sense(cstate, i, params, terrain, d, key):
+        k_scan, k_map = jax.random.split(jax.random.fold_in(key, i))
+        scan = raycast.scan(sensor, d.qpos[:3], d.qpos[3:7], terrain, k_scan)
+        return controller.perceive(params, cstate, scan, k_map)
+
+    def step(carry, i, params, terrain, m_shared, ctrl0, pert=None, sense_key=None):
         d, cstate, acc = carry[:3]
         if cfg.progress_every:
             jax.lax.cond((i + 1) % cfg.progress_every == 0,
@@ -235,6 +247,9 @@ def make_control_step(sm: SimModel, sensors: SensorConfig, cfg: RolloutConfig, c
             t_walk = (i - n_settle) * controller.dt
             m = perturb.model(sm, m, pert, t_walk)
             obs = perturb.observe(obs, pert, i, t_walk, sensors)
+        if sensor is not None:
+            cstate = jax.lax.cond((i >= n_settle) & ((i - n_settle) % every == 0),
+                                  lambda c: sense(c, i, params, terrain, d, sense_key), lambda c: c, cstate)
         new_cstate, action = controller.step(params, cstate, obs)
         walking = i >= n_settle
         action = jnp.where(walking, action, ctrl0)

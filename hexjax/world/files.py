@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any, Dict, List, Mapping, Optional
 
 KINDS = {"robots": "robot preset", "terrains": "terrain preset", "experiments": "experiment",
-         "commands": "command", "tune": "tune config"}
+         "commands": "command", "tune": "tune config", "sensors": "sensor preset"}
 
 
 def config_dir() -> Path:

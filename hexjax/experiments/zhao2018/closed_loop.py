@@ -92,15 +92,17 @@ def touches(robot: RobotSpec, trace, foot_trace, terrain: Terrain, chunk: int = 
 
 def run_closed_loop(n: int = 32, seed: int = 0, robot: str = "luneckas2020", n_T: int = 2,
                     duration: Optional[float] = None, chunk: int = 0, mesh=None, fields: Optional[Fields] = None,
-                    blind: bool = False) -> Dict:
+                    blind: bool = False, controller: Optional[AvoidGaitController] = None,
+                    progress: bool = True) -> Dict:
     """Closed-loop avoidance over n random fields (`small_fields`, or the given `fields`): the kinematic
     planner (`avoid.plan`, same params) and the MJX hexapod with `AvoidGaitController`, side by side.
     blind: the MJX robot's planner is not told of the obstacles (they are still in the terrain), the
-    ablation that shows what the planner prevents. Returns a JSON-ready dict; the `_`-keys hold arrays for
-    plots. A field counts as a closed-loop success when the robot stopped within goal_tol of the target,
-    touched no obstacle, did not fall and stayed finite."""
+    ablation that shows what the planner prevents. controller: another `AvoidGaitController` (with the same
+    n_T), e.g. one that plans round perceived obstacles (`hexjax.control.perceive_gait`). Returns a JSON-ready
+    dict; the `_`-keys hold arrays for plots. A field counts as a closed-loop success when the robot stopped
+    within goal_tol of the target, touched no obstacle, did not fall and stayed finite."""
     rb = get_robot(robot)
-    ctrl = AvoidGaitController(rb, avoid=AvoidConfig(n_T=n_T, max_cycles=40))
+    ctrl = controller or AvoidGaitController(rb, avoid=AvoidConfig(n_T=n_T, max_cycles=40))
     g = fast_gait(ctrl)
     ap = small_robot_params(rb, float(g.step_length), ctrl.advance(g))
     k_field, k_box, k_roll = jax.random.split(jax.random.PRNGKey(seed), 3)
@@ -128,7 +130,7 @@ def run_closed_loop(n: int = 32, seed: int = 0, robot: str = "luneckas2020", n_T
     outs = []
     t0 = time.perf_counter()
     compile_s = 0.0
-    for i in tqdm(range(0, n, chunk), desc="closed loop", unit="chunk", disable=n <= chunk):
+    for i in tqdm(range(0, n, chunk), desc="closed loop", unit="chunk", disable=n <= chunk or not progress):
         sl = lambda x: x[i:i + chunk]
         s, st = rollout(rb, jax.tree_util.tree_map(sl, terrain), ctrl, jax.tree_util.tree_map(sl, params), duration,
                         jax.random.fold_in(k_roll, i), config=cfg, params_batched=True, mesh=mesh, stats=True)
@@ -138,7 +140,8 @@ def run_closed_loop(n: int = 32, seed: int = 0, robot: str = "luneckas2020", n_T
     wall = time.perf_counter() - t0
     cat = lambda f: np.concatenate([np.asarray(f(o[0])) for o in outs])
     touched = np.concatenate([o[1] for o in outs])
-    reached = cat(lambda s: s.final_state.done)
+    planner = lambda s: getattr(s.final_state, "avoid", s.final_state)  # the planner-gait's own state
+    reached = cat(lambda s: planner(s).done)
     fell, nan = cat(lambda s: s.fell), cat(lambda s: s.nan)
     end = cat(lambda s: s.end_pose)
     final_dist = np.linalg.norm(end[:, :2] - np.asarray(fields.target), axis=-1)
@@ -173,11 +176,13 @@ def run_closed_loop(n: int = 32, seed: int = 0, robot: str = "luneckas2020", n_T
             "circle_clearance_m": {"min": float(d.min()), "p5": float(np.percentile(d, 5)),
                                    "median": float(np.median(d))},
             "path_ratio_mean": float((length / straight)[ok].mean()) if ok.any() else None,
-            "plans_mean": float(cat(lambda s: s.final_state.plans).mean()),
-            "held_cycles": int(cat(lambda s: s.final_state.held).sum()),
+            "plans_mean": float(cat(lambda s: planner(s).plans).mean()),
+            "held_cycles": int(cat(lambda s: planner(s).held).sum()),
         },
         "wall_s": wall, "compile_s": compile_s, "env_steps_per_s": env_steps / max(wall - compile_s, 1e-9),
         "_fields": fields, "_terrain": terrain, "_traces": traces, "_ok": ok, "_kin": kin, "_blocked": blocked,
+        "_touched": touched, "_final": jax.tree_util.tree_map(lambda *x: np.concatenate(x),
+                                                              *[o[0].final_state for o in outs]),
     }
     return res
 
