@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from hexjax.perceive.grid import GridMap, GridSpec, fuse
-from hexjax.perceive.obstacles import circles, label_components, obstacle_cells
+from hexjax.perceive.obstacles import circles, label_components, map_obstacles, obstacle_cells
 from hexjax.perceive.ransac import fit_plane
 from hexjax.perceive.raycast import ray_box, ray_terrain, scan
 from hexjax.perceive.sensors import RangeSensor, get_sensor
@@ -217,10 +217,8 @@ def test_perceived_circles_cover_the_observed_obstacle_area_on_64_fields():
         q = jnp.array([jnp.cos(yaw / 2), 0, 0, jnp.sin(yaw / 2)])
         for j, x in enumerate((-0.3, 0.0, 0.2, 0.4)):
             g = fuse(spec, g, scan(sensor, jnp.array([x * d[0], x * d[1], 0.12]), q, t, jax.random.fold_in(key, j)))
-        h, known = g.heights()
-        cells = jnp.concatenate([jnp.asarray(spec.centres()).reshape(-1, 2), h.reshape(-1, 1)], -1)
-        plane = fit_plane(cells, known.reshape(-1), key)
-        return circles(spec, obstacle_cells(spec, g, plane, 0.05), 24, near=jnp.zeros(2)), plane.height(jnp.zeros(2)), g.count
+        plane, _, c = map_obstacles(spec, g, key, 0.05, 24, near=jnp.zeros(2))
+        return c, plane.height(jnp.zeros(2)), g.count
 
     c, ground, count = jax.jit(jax.vmap(one))(terr, f.target, jax.random.split(jax.random.PRNGKey(1), n))
     assert float(jnp.abs(ground).max()) < 0.005

@@ -23,8 +23,7 @@ from flax import struct
 from hexjax.control.avoid_gait import AvoidGaitController, AvoidGaitParams, AvoidGaitState
 from hexjax.perceive import grid as gridmap
 from hexjax.perceive.grid import GridMap, GridSpec
-from hexjax.perceive.obstacles import Circles, circles, obstacle_cells
-from hexjax.perceive.ransac import fit_plane
+from hexjax.perceive.obstacles import Circles, map_obstacles
 from hexjax.perceive.sensors import RangeSensor
 
 
@@ -78,11 +77,9 @@ class PerceivingAvoidGait(AvoidGaitController):
 
     def perceive(self, params: AvoidGaitParams, state: PerceiveState, scan, key) -> PerceiveState:
         g = gridmap.fuse(self.grid, state.grid, scan)
-        h, known = g.heights()
-        cells = jnp.concatenate([jnp.asarray(self.grid.centres()).reshape(-1, 2), h.reshape(-1, 1)], -1)
-        plane = fit_plane(cells, known.reshape(-1), key, self.ransac_hypotheses, self.ransac_threshold)
-        mask = obstacle_cells(self.grid, g, plane, self.obstacle_threshold)
-        circ = circles(self.grid, mask, self.n_circles, near=scan.origin[:2])
+        plane, _, circ = map_obstacles(self.grid, g, key, self.obstacle_threshold, self.n_circles,
+                                       near=scan.origin[:2], n_hyp=self.ransac_hypotheses,
+                                       inlier=self.ransac_threshold)
         return state.replace(grid=g, circ=circ, ground_normal=plane.normal, ground_offset=plane.offset,
                              scans=state.scans + 1)
 

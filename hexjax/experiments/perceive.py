@@ -13,8 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from hexjax.perceive.grid import GridMap, GridSpec, fuse
-from hexjax.perceive.obstacles import circles, obstacle_cells
-from hexjax.perceive.ransac import fit_plane
+from hexjax.perceive.obstacles import map_obstacles
 from hexjax.perceive.raycast import scan
 from hexjax.perceive.sensors import get_sensor
 from hexjax.world.presets import get_robot, get_terrain
@@ -51,10 +50,7 @@ def perceive_once(sensor: str = "kinect_v1", terrain: str = FIELD, seed: int = 0
     sc = one(t, jax.random.PRNGKey(seed))
     g = fuse(spec, GridMap.empty(spec), sc)
     h, known = g.heights()
-    cells = jnp.concatenate([jnp.asarray(spec.centres()).reshape(-1, 2), h.reshape(-1, 1)], -1)
-    plane = fit_plane(cells, known.reshape(-1), jax.random.PRNGKey(seed + 1))
-    mask = obstacle_cells(spec, g, plane, threshold)
-    circ = circles(spec, mask, 32, near=sc.origin[:2])
+    plane, mask, circ = map_obstacles(spec, g, jax.random.PRNGKey(seed + 1), threshold, 32, near=sc.origin[:2])
     # throughput: the scan alone, vmapped over bench_envs copies of the terrain (compiled once, best of 5)
     tb = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (bench_envs,) + x.shape), t)
     many = jax.jit(jax.vmap(lambda tt, k: scan(s, pos, quat, tt, k)))
@@ -72,7 +68,7 @@ def perceive_once(sensor: str = "kinect_v1", terrain: str = FIELD, seed: int = 0
             "ground_height_m": float(plane.height(jnp.asarray(pose[:2], jnp.float32))),
             "ground_tilt_deg": math.degrees(float(plane.tilt())), "obstacle_cells": int(mask.sum()),
             "known_cells": int(known.sum()), "circles": int(circ.valid.sum()),
-            "bench_envs": bench_envs, "scan_s": wall, "rays_per_s_per_env": s.n_rays / wall * 1.0,
+            "bench_envs": bench_envs, "scan_s": wall, "rays_per_s_per_env": s.n_rays / wall,
             "rays_per_s": s.n_rays * bench_envs / wall, "device": str(jax.devices()[0].platform),
             "_scan": sc, "_terrain": t, "_heights": (np.asarray(h), np.asarray(known)), "_mask": np.asarray(mask),
             "_circles": circ, "_grid": spec}

@@ -17,7 +17,7 @@ import numpy as np
 from flax import struct
 
 from hexjax.perceive.grid import GridMap, GridSpec
-from hexjax.perceive.ransac import Plane
+from hexjax.perceive.ransac import Plane, fit_plane
 
 
 @struct.dataclass
@@ -79,3 +79,15 @@ def circles(spec: GridSpec, mask, q: int, near=None) -> Circles:
     ok = root[top]
     return Circles(centres=jnp.where(ok[:, None], cen[top], 0.0), radii=jnp.where(ok, rad[top], 0.0), valid=ok,
                    cells=jnp.where(ok, cnt[top], 0.0).astype(jnp.int32))
+
+
+def map_obstacles(spec: GridSpec, grid: GridMap, key, threshold: float, q: int, near=None, n_hyp: int = 128,
+                  inlier: float = 0.01):
+    """(ground `Plane`, obstacle mask (nx, ny), `Circles`) of a fused map: RANSAC (`n_hyp` hypotheses, inliers
+    within `inlier` m) over the known cells' mean heights, cells more than `threshold` m above that plane, and
+    up to `q` circles (nearest to `near` first)."""
+    h, known = grid.heights()
+    cells = jnp.concatenate([jnp.asarray(spec.centres()).reshape(-1, 2), h.reshape(-1, 1)], -1)
+    plane = fit_plane(cells, known.reshape(-1), key, n_hyp, inlier)
+    mask = obstacle_cells(spec, grid, plane, threshold)
+    return plane, mask, circles(spec, mask, q, near=near)
