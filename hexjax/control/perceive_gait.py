@@ -24,7 +24,7 @@ from hexjax.control.avoid_gait import AvoidGaitController, AvoidGaitParams, Avoi
 from hexjax.perceive import grid as gridmap
 from hexjax.perceive.grid import GridMap, GridSpec
 from hexjax.perceive.obstacles import Circles, map_obstacles
-from hexjax.perceive.sensors import RangeSensor
+from hexjax.perceive.sensors import RangeSensor, validate_perceiver
 
 
 @struct.dataclass
@@ -58,10 +58,7 @@ class PerceivingAvoidGait(AvoidGaitController):
 
     def __post_init__(self):
         super().__post_init__()
-        self.sensor.validate(self.robot)
-        self.grid.validate()
-        if not (isinstance(self.perceive_every, int) and self.perceive_every >= 1):
-            raise ValueError(f"perceive_every={self.perceive_every!r}: must be a whole number of control steps >= 1")
+        validate_perceiver(self)
         if not self.obstacle_threshold > 0:
             raise ValueError(f"obstacle_threshold={self.obstacle_threshold!r}: must be > 0 m")
         if not (isinstance(self.n_circles, int) and 1 <= self.n_circles <= 256):

@@ -88,9 +88,28 @@ def fuse(spec: GridSpec, grid: GridMap, scan: Scan) -> GridMap:
                    count=grid.count.at[ix, iy].add(w))
 
 
-def to_dem(spec: GridSpec, grid: GridMap, fill) -> DEM:
-    """The map as a `DEM` (the Chen 2019 foothold planner's input): unknown cells take the height `fill`
-    (e.g. the ground height from `hexjax.perceive.ransac`)."""
+def fill_unknown(h, known, passes: int):
+    """(heights, known) (nx, ny) with unknown cells next to known ones given the highest of their known 3 x 3
+    neighbours, `passes` times over (each pass reaches one cell further). The highest, not the mean: a cell
+    hidden behind a crest is more likely as high as the crest than as low as the floor in front of it, and a
+    planner that overestimates a height lifts its swing foot higher instead of stubbing it."""
+    nx, ny = h.shape
+
+    def one(_, hk):
+        h, k = hk
+        p = jnp.pad(jnp.where(k, h, -jnp.inf), 1, constant_values=-jnp.inf)
+        nb = jnp.max(jnp.stack([p[1 + a:1 + a + nx, 1 + b:1 + b + ny] for a in (-1, 0, 1) for b in (-1, 0, 1)]), 0)
+        new = ~k & jnp.isfinite(nb)
+        return jnp.where(new, nb, h), k | new
+
+    return jax.lax.fori_loop(0, passes, one, (h, known))
+
+
+def to_dem(spec: GridSpec, grid: GridMap, fill, passes: int = 0) -> DEM:
+    """The map as a `DEM` (the Chen 2019 foothold planner's input): unknown cells within `passes` cells of a
+    known one take a neighbour's height (`fill_unknown`), the rest the height `fill` (e.g. the ground
+    height from `hexjax.perceive.ransac`)."""
     h, known = grid.heights()
+    h, known = fill_unknown(h, known, passes)
     return DEM(heights=jnp.where(known, h, fill), origin=jnp.asarray(spec.origin, jnp.float32),
                cell=jnp.float32(spec.cell))

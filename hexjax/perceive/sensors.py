@@ -108,6 +108,15 @@ class RangeSensor:
         return (rz @ ry @ rx).astype(np.float32)
 
 
+def validate_perceiver(ctrl) -> None:
+    """Host-side checks of a perceiving controller's static perception fields (its `sensor` on its `robot`,
+    its map `grid`, `perceive_every`); each error one line naming the field and value."""
+    ctrl.sensor.validate(ctrl.robot)
+    ctrl.grid.validate()
+    if not (isinstance(ctrl.perceive_every, int) and ctrl.perceive_every >= 1):
+        raise ValueError(f"perceive_every={ctrl.perceive_every!r}: must be a whole number of control steps >= 1")
+
+
 def get_sensor(name: str, **overrides) -> RangeSensor:
     """`RangeSensor` of preset `name` (configs/sensors/<name>.yaml) or of a YAML file path, with keys replaced
     by `overrides` (checked like the file's own)."""

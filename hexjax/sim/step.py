@@ -248,6 +248,9 @@ def make_control_step(sm: SimModel, sensors: SensorConfig, cfg: RolloutConfig, c
             m = perturb.model(sm, m, pert, t_walk)
             obs = perturb.observe(obs, pert, i, t_walk, sensors)
         if sensor is not None:
+            if sense_key is None:
+                raise ValueError(f"{type(controller).__name__} has a range sensor: its control step needs a "
+                                 "sense_key (one PRNG key per env) to draw the scans' noise")
             cstate = jax.lax.cond((i >= n_settle) & ((i - n_settle) % every == 0),
                                   lambda c: sense(c, i, params, terrain, d, sense_key), lambda c: c, cstate)
         new_cstate, action = controller.step(params, cstate, obs)

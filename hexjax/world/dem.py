@@ -54,14 +54,19 @@ def snap(dem: DEM, xy):
 NEIGHBOURS_3X3 = np.array([(a, b) for a in (-1, 0, 1) for b in (-1, 0, 1)], np.float32)
 
 
-def dem_for(spec, terrain: Terrain, margin: float = 0.5) -> DEM:
-    """Per-env DEMs (leading axis B) of a batch of `spec` terrains on the terrain's own grid, extended by
-    `margin` m of ground on every side."""
+def dem_layout(spec, margin: float = 0.5):
+    """(origin (2,) m, (nx, ny), cell m) of the DEM grid of `spec` terrains: the terrain's own grid, extended
+    by `margin` m of ground on every side."""
     cell = spec.cell
     pad = int(round(margin / cell))
     nx, ny = spec._grid_shape()
     origin = np.array([spec.start_x - pad * cell, -0.5 * spec.width - pad * cell], np.float32)
-    shape = (nx + 2 * pad, ny + 2 * pad)
+    return origin, (nx + 2 * pad, ny + 2 * pad), cell
+
+
+def dem_for(spec, terrain: Terrain, margin: float = 0.5) -> DEM:
+    """Per-env DEMs (leading axis B) of a batch of `spec` terrains, laid out by `dem_layout`."""
+    origin, shape, cell = dem_layout(spec, margin)
     h = jax.jit(jax.vmap(lambda t: rasterise(t, jnp.asarray(origin), shape, cell)))(terrain)
     b = h.shape[0]
     return DEM(heights=h, origin=jnp.broadcast_to(jnp.asarray(origin), (b, 2)), cell=jnp.full((b,), cell, jnp.float32))

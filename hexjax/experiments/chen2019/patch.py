@@ -3,6 +3,7 @@ fixed gait over randomised rugged wave patches, counting capsizes; Fig. 6-like t
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from typing import Dict
 
@@ -12,10 +13,12 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from hexjax.control.gait import GaitController, GaitParams
+from hexjax.control.perceive_support import PerceivingSupportPlan
 from hexjax.control.support_gait import SupportPlanController
+from hexjax.perceive.grid import GridSpec
 from hexjax.sim.config import PhysicsConfig, RolloutConfig
 from hexjax.sim.rollout import rollout
-from hexjax.world.dem import dem_for
+from hexjax.world.dem import dem_for, dem_layout
 from hexjax.world.presets import get_robot, get_terrain
 from hexjax.world.terrain import heightmap, sample
 
@@ -52,13 +55,17 @@ def _summarise(parts, far: float) -> Dict:
 
 
 def run_chen2019(n: int = 16, seed: int = 0, robot: str = "chen2019", duration: float = 16.0, stride: float = 0.05,
-                 phase_time: float = 0.5, fixed_step_heights=(0.08, 0.13), chunk: int = 0, mesh=None) -> Dict:
-    """Planned (SupportPlanController) vs fixed (the Luneckas 2020 tripod at the same stride and period and the
-    robot's standard posture, at each swing height of `fixed_step_heights`) over n randomised wave patches
-    (`patch_spec`), physics `CHEN_PHYSICS`. Per controller: capsizes (the rollout's fall test: torso tilt
-    > 60 deg or centre < 3 cm above the ground), crossings (torso past the patch's far edge, upright),
-    stalls (neither), tilt statistics; for the planned one also the smallest stability margin at a
-    transition and control steps with a leg target out of reach. `_records` keeps traces for plots."""
+                 phase_time: float = 0.5, fixed_step_heights=(0.08, 0.13), chunk: int = 0, mesh=None,
+                 sensor=None, perceive_every: int = 5, progress: bool = True) -> Dict:
+    """Planned (SupportPlanController on the true DEM) vs fixed (the Luneckas 2020 tripod at the same stride
+    and period and the robot's standard posture, at each swing height of `fixed_step_heights`) over n
+    randomised wave patches (`patch_spec`), physics `CHEN_PHYSICS`. With a `sensor`
+    (`hexjax.perceive.sensors.RangeSensor`) also "perceived": the same planner on the DEM it maps with that
+    sensor, a scan every `perceive_every` control steps (`PerceivingSupportPlan`). Per controller: capsizes
+    (the rollout's fall test: torso tilt > 60 deg or centre < 3 cm above the ground), crossings (torso past
+    the patch's far edge, upright), stalls (neither), tilt statistics; for the planned ones also the smallest
+    stability margin at a transition and control steps with a leg target out of reach; for the perceived one
+    the final map's error against the true DEM over the patch. `_records` keeps traces for plots."""
     if not (isinstance(n, int) and n >= 1):
         raise ValueError(f"batch n={n!r}: must be an integer >= 1")
     if not (isinstance(duration, (int, float)) and duration > 0):
@@ -71,8 +78,14 @@ def run_chen2019(n: int = 16, seed: int = 0, robot: str = "chen2019", duration: 
     planned = SupportPlanController(rb)
     pp = planned.default_params(stride=stride, phase_time=phase_time)
     tile = lambda x: jnp.broadcast_to(x, (n,) + jnp.shape(x))
-    pp = jax.tree_util.tree_map(tile, pp.replace(dem=None)).replace(dem=dem_for(spec, terrain))
+    true_dem = dem_for(spec, terrain)
+    pp = jax.tree_util.tree_map(tile, pp.replace(dem=None)).replace(dem=true_dem)
     variants = [("planned", planned, pp, True)]
+    if sensor is not None:
+        origin, (nx, ny), cell = dem_layout(spec)
+        grid = GridSpec(origin=(float(origin[0]), float(origin[1])), cell=float(cell), nx=nx, ny=ny)
+        variants.append(("perceived", PerceivingSupportPlan(rb, sensor=sensor, grid=grid,
+                                                            perceive_every=perceive_every), pp, True))
     for h in fixed_step_heights:
         # the Luneckas 2020 tripod moves the torso l per swing slot: the same advance per phase as `stride`
         fp = GaitParams(step_length=jnp.float32(stride), step_height=jnp.float32(h),
@@ -89,11 +102,13 @@ def run_chen2019(n: int = 16, seed: int = 0, robot: str = "chen2019", duration: 
                       "torso_height": float(pp.height[0]), "physics_iterations": CHEN_PHYSICS.iterations,
                       "slots_per_leg": CHEN_PHYSICS.slots_per_leg, "device": str(jax.devices()[0].platform)},
            "_records": {}, "_terrain": terrain}
+    if sensor is not None:
+        res["config"].update(sensor=dataclasses.asdict(sensor), perceive_every=perceive_every)
     for name, ctrl, params, batched in variants:
         parts = []
         t0 = time.perf_counter()
         comp = 0.0
-        for i in tqdm(range(0, n, chunk), desc=f"chen2019 {name}", unit="chunk", disable=n <= chunk):
+        for i in tqdm(range(0, n, chunk), desc=f"chen2019 {name}", unit="chunk", disable=n <= chunk or not progress):
             sl = lambda x: x[i:i + chunk]
             prm = jax.tree_util.tree_map(sl, params) if batched else params
             s, st = rollout(rb, jax.tree_util.tree_map(sl, terrain), ctrl, prm, duration, jax.random.fold_in(k_r, i),
@@ -103,14 +118,36 @@ def run_chen2019(n: int = 16, seed: int = 0, robot: str = "chen2019", duration: 
         row = _summarise(parts, far)
         row["wall_s"], row["compile_s"] = time.perf_counter() - t0, comp
         cat = lambda f: np.concatenate([np.asarray(f(p)) for p in parts])
-        if name == "planned":
-            row["min_stability_margin_m"] = {"median": float(np.median(cat(lambda s: s.final_state.min_margin))),
-                                             "min": float(np.min(cat(lambda s: s.final_state.min_margin)))}
-            row["steps_with_a_leg_out_of_reach"] = int(cat(lambda s: s.final_state.unreachable).sum())
+        if name in ("planned", "perceived"):
+            sup = lambda s: getattr(s.final_state, "support", s.final_state)
+            row["min_stability_margin_m"] = {"median": float(np.median(cat(lambda s: sup(s).min_margin))),
+                                             "min": float(np.min(cat(lambda s: sup(s).min_margin)))}
+            row["steps_with_a_leg_out_of_reach"] = int(cat(lambda s: sup(s).unreachable).sum())
+        if name == "perceived":
+            row["map"] = map_error(spec, true_dem, cat(lambda s: s.final_state.heights),
+                                   cat(lambda s: s.final_state.grid.count) > 0)
+            row["scans_per_walk"] = float(np.mean(cat(lambda s: s.final_state.scans)))
+            res["_perceived_dem"] = cat(lambda s: s.final_state.heights)
         res[name] = row
         res["_records"][name] = {"trace": cat(lambda s: s.trace), "ctrl": cat(lambda s: s.ctrl_trace),
                                  "fell": cat(lambda s: s.fell)}
     return res
+
+
+def map_error(spec, true_dem, heights, known) -> Dict:
+    """How the perceived DEMs (heights (B, nx, ny) m, known (B, nx, ny): cells that got a return) differ from the
+    true ones over the patch's cells (the taper included): the share of them seen, and the height error
+    (perceived - true, m) over the seen cells and over all of them (unseen ones as the planner reads them,
+    filled)."""
+    origin, _, cell = dem_layout(spec)
+    pad = int(round((spec.start_x - float(origin[0])) / cell))
+    nx, ny = spec._grid_shape()
+    win = (slice(None), slice(pad, pad + nx), slice(pad, pad + ny))
+    err = (np.asarray(heights) - np.asarray(true_dem.heights))[win]
+    seen = np.asarray(known)[win]
+    q = lambda e: {"mean_abs": float(np.mean(np.abs(e))), "bias": float(np.mean(e)),
+                   "p95_abs": float(np.percentile(np.abs(e), 95))}
+    return {"seen_share": float(seen.mean()), "seen_cells": q(err[seen]) if seen.any() else None, "all_cells": q(err)}
 
 
 def plot_chen2019(res: Dict, png: str, env: int = 0) -> None:
@@ -170,14 +207,15 @@ def report(res: Dict) -> str:
              f"{1000 * c['patch']['peak_range'][0]:.0f}-{1000 * c['patch']['peak_range'][1]:.0f} mm), "
              f"{c['speed']:.2f} m/s, {c['duration_s']:g} s",
              f"{'controller':>16} {'capsized':>9} {'crossed':>8} {'stalled':>8} {'tilt>30deg':>10} {'max tilt p95':>13}"]
-    for k in [k for k in res if k == "planned" or k.startswith("fixed")]:
+    for k in [k for k in res if k in ("planned", "perceived") or k.startswith("fixed")]:
         r = res[k]
         lines.append(f"{k:>16} {r['capsized']:>9} {r['crossed']:>8} {r['stalled']:>8} {r['tilted_over_30deg']:>10} "
                      f"{r['max_tilt_deg']['p95']:>12.1f}d")
-    p = res["planned"]
-    lines.append(f"planned: smallest stability margin at a transition {100 * p['min_stability_margin_m']['min']:.1f} "
-                 f"cm (median {100 * p['min_stability_margin_m']['median']:.1f} cm); control steps with a leg target "
-                 f"out of reach {p['steps_with_a_leg_out_of_reach']}")
+    for k in [k for k in ("planned", "perceived") if k in res]:
+        p = res[k]
+        lines.append(f"{k}: smallest stability margin at a transition {100 * p['min_stability_margin_m']['min']:.1f} "
+                     f"cm (median {100 * p['min_stability_margin_m']['median']:.1f} cm); control steps with a leg "
+                     f"target out of reach {p['steps_with_a_leg_out_of_reach']}")
     return "\n".join(lines)
 
 
