@@ -24,12 +24,10 @@ FIELD = "zhao-field"  # --terrain value: a random field of zhao2018-mjx (0.25 m 
 
 def _terrain(name: str, seed: int, robot) -> Terrain:
     if name == FIELD:
-        from hexjax.control.avoid_gait import footprint_radius
-        from hexjax.experiments.zhao2018.closed_loop import obstacle_boxes
-        from hexjax.plan.fields import small_fields
-        k1, k2 = jax.random.split(jax.random.PRNGKey(seed))
-        f = small_fields(k1, 1, footprint_radius(robot, 0.06), 0.12)
-        return jax.tree_util.tree_map(lambda x: x[0], obstacle_boxes(k2, f))
+        from hexjax.control.avoid_gait import AvoidGaitController
+        from hexjax.experiments.zhao2018.closed_loop import field_setup, obstacle_boxes, seeded_fields
+        f, k_box = seeded_fields(seed, 1, field_setup(AvoidGaitController(robot))[1])
+        return jax.tree_util.tree_map(lambda x: x[0], obstacle_boxes(k_box, f))
     return jax.tree_util.tree_map(lambda x: x[0], sample(get_terrain(name), jax.random.PRNGKey(seed), 1))
 
 

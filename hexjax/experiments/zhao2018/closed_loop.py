@@ -90,6 +90,20 @@ def touches(robot: RobotSpec, trace, foot_trace, terrain: Terrain, chunk: int = 
     return np.concatenate(out)
 
 
+def field_setup(ctrl: AvoidGaitController):
+    """(gait params, planner params) of the closed loop for a planner-gait: `fast_gait` and
+    `small_robot_params` at its step length and advance per cycle."""
+    g = fast_gait(ctrl)
+    return g, small_robot_params(ctrl.robot, float(g.step_length), ctrl.advance(g))
+
+
+def seeded_fields(seed: int, n: int, ap):
+    """The n random fields `run_closed_loop` draws for `seed` (`small_fields` with the planner's robot radius
+    and d_max), and the key for the obstacle boxes."""
+    k_field, k_box, _ = jax.random.split(jax.random.PRNGKey(seed), 3)
+    return small_fields(k_field, n, float(ap.robot_radii[0]), float(ap.d_max)), k_box
+
+
 def run_closed_loop(n: int = 32, seed: int = 0, robot: str = "luneckas2020", n_T: int = 2,
                     duration: Optional[float] = None, chunk: int = 0, mesh=None, fields: Optional[Fields] = None,
                     blind: bool = False, controller: Optional[AvoidGaitController] = None,
@@ -103,13 +117,12 @@ def run_closed_loop(n: int = 32, seed: int = 0, robot: str = "luneckas2020", n_T
     within goal_tol of the target, touched no obstacle, did not fall and stayed finite."""
     rb = get_robot(robot)
     ctrl = controller or AvoidGaitController(rb, avoid=AvoidConfig(n_T=n_T, max_cycles=40))
-    g = fast_gait(ctrl)
-    ap = small_robot_params(rb, float(g.step_length), ctrl.advance(g))
+    g, ap = field_setup(ctrl)
     k_field, k_box, k_roll = jax.random.split(jax.random.PRNGKey(seed), 3)
     if fields is None:
         if not (isinstance(n, int) and n >= 1):
             raise ValueError(f"fields n={n!r}: must be an integer >= 1")
-        fields = small_fields(k_field, n, float(ap.robot_radii[0]), float(ap.d_max))
+        fields, _ = seeded_fields(seed, n, ap)
     n = int(fields.start.shape[0])
     if np.any(np.asarray(fields.start) != 0):
         raise ValueError("fields.start: the MJX robot starts at (0, 0); give fields with start (0, 0)")

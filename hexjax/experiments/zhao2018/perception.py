@@ -14,13 +14,12 @@ import jax
 import numpy as np
 from tqdm.auto import tqdm
 
-from hexjax.control.avoid_gait import AvoidGaitController, fast_gait, small_robot_params
+from hexjax.control.avoid_gait import AvoidGaitController
 from hexjax.control.perceive_gait import PerceivingAvoidGait, map_bounds
-from hexjax.experiments.zhao2018.closed_loop import run_closed_loop
+from hexjax.experiments.zhao2018.closed_loop import field_setup, run_closed_loop, seeded_fields
 from hexjax.perceive.grid import GridSpec
 from hexjax.perceive.sensors import get_sensor
 from hexjax.plan.avoid import AvoidConfig
-from hexjax.plan.fields import small_fields
 from hexjax.world.presets import get_robot
 
 MODES = ("privileged", "perceived", "blind")
@@ -62,10 +61,8 @@ def run_perception(n: int = 16, seed: int = 0, robot: str = "luneckas2020", sens
     GridSpec(cell=cell).validate()  # the sensor and grid checked before any JAX work
     get_sensor(sensor, **sensor_overrides).validate(rb)
     base = AvoidGaitController(rb, avoid=AvoidConfig(n_T=n_T, max_cycles=40))
-    g = fast_gait(base)
-    ap = small_robot_params(rb, float(g.step_length), base.advance(g))
-    fields = small_fields(jax.random.split(jax.random.PRNGKey(seed), 3)[0], n, float(ap.robot_radii[0]),
-                          float(ap.d_max))
+    _, ap = field_setup(base)
+    fields, _ = seeded_fields(seed, n, ap)
     ctrl = perceiving_controller(robot, sensor, n_T, cell, fields, every, threshold, **sensor_overrides)
     t0 = time.perf_counter()
     out, raw = {}, {}
