@@ -263,7 +263,7 @@ def test_perceived_dem_of_a_wave_patch_matches_the_true_dem_where_seen():
     the patch's first quarter."""
     from hexjax.control.perceive_support import PerceivingSupportPlan
     from hexjax.experiments.chen2019.patch import patch_spec
-    from hexjax.perceive.grid import to_dem
+    from hexjax.perceive.grid import dem_grid, to_dem
     from hexjax.world.dem import dem_for, dem_layout
     from hexjax.world.presets import get_robot
     from hexjax.world.terrain import sample
@@ -273,7 +273,7 @@ def test_perceived_dem_of_a_wave_patch_matches_the_true_dem_where_seen():
     true = np.asarray(dem_for(spec, terr).heights[0])
     one = jax.tree_util.tree_map(lambda x: x[0], terr)
     origin, (nx, ny), cell = dem_layout(spec)
-    grid = GridSpec(origin=(float(origin[0]), float(origin[1])), cell=float(cell), nx=nx, ny=ny)
+    grid = dem_grid(spec)
     ctrl = PerceivingSupportPlan(get_robot("chen2019"), sensor=get_sensor("realsense_d435"), grid=grid)
     g = GridMap.empty(grid)
     q = jnp.array([1.0, 0.0, 0.0, 0.0])

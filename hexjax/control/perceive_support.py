@@ -23,7 +23,7 @@ from flax import struct
 from hexjax.control.support_gait import SupportParams, SupportPlanController, SupportState
 from hexjax.perceive import grid as gridmap
 from hexjax.perceive.grid import GridMap, GridSpec
-from hexjax.perceive.ransac import fit_plane
+from hexjax.perceive.obstacles import map_ground
 from hexjax.perceive.sensors import RangeSensor, validate_perceiver
 from hexjax.world.dem import DEM
 
@@ -31,13 +31,11 @@ from hexjax.world.dem import DEM
 @struct.dataclass
 class PerceiveSupportState:
     """support: the planner's state; grid: the fused map; heights (nx, ny) m: the DEM the planner reads (the
-    map with its unknown cells filled); ground_offset () m: the RANSAC ground's height under the sensor;
-    scans: scans taken."""
+    map with its unknown cells filled); scans: scans taken."""
 
     support: SupportState
     grid: GridMap
     heights: jax.Array
-    ground_offset: jax.Array
     scans: jax.Array
 
 
@@ -64,7 +62,7 @@ class PerceivingSupportPlan(SupportPlanController):
     def init(self, params: SupportParams, key) -> PerceiveSupportState:
         g = GridMap.empty(self.grid)
         return PerceiveSupportState(support=super().init(params, key), grid=g, heights=jnp.zeros_like(g.sum_z),
-                                    ground_offset=jnp.asarray(0.0), scans=jnp.int32(0))
+                                    scans=jnp.int32(0))
 
     def _dem(self, state: PerceiveSupportState) -> DEM:
         return DEM(heights=state.heights, origin=jnp.asarray(self.grid.origin, jnp.float32),
@@ -72,13 +70,9 @@ class PerceivingSupportPlan(SupportPlanController):
 
     def perceive(self, params: SupportParams, state: PerceiveSupportState, scan, key) -> PerceiveSupportState:
         g = gridmap.fuse(self.grid, state.grid, scan)
-        h, known = g.heights()
-        centres = jnp.asarray(self.grid.centres())
-        cells = jnp.concatenate([centres.reshape(-1, 2), h.reshape(-1, 1)], -1)
-        plane = fit_plane(cells, known.reshape(-1), key, self.ransac_hypotheses, self.ransac_threshold)
-        dem = gridmap.to_dem(self.grid, g, plane.height(centres), self.fill_passes)
-        return state.replace(grid=g, heights=dem.heights, ground_offset=plane.height(scan.origin[:2]),
-                             scans=state.scans + 1)
+        plane = map_ground(self.grid, g, key, self.ransac_hypotheses, self.ransac_threshold)
+        dem = gridmap.to_dem(self.grid, g, plane.height(jnp.asarray(self.grid.centres())), self.fill_passes)
+        return state.replace(grid=g, heights=dem.heights, scans=state.scans + 1)
 
     def step(self, params: SupportParams, state: PerceiveSupportState, obs):
         support, action = super().step(params.replace(dem=self._dem(state)), state.support, obs)

@@ -18,7 +18,7 @@ import numpy as np
 from flax import struct
 
 from hexjax.perceive.raycast import Scan
-from hexjax.world.dem import DEM
+from hexjax.world.dem import DEM, dem_layout
 
 
 @dataclasses.dataclass(frozen=True)
@@ -70,6 +70,13 @@ class GridMap:
         """(mean height (nx, ny) m, 0 where unknown; known (nx, ny) bool)."""
         known = self.count > 0
         return jnp.where(known, self.sum_z / jnp.maximum(self.count, 1.0), 0.0), known
+
+
+def dem_grid(terrain_spec, margin: float = 0.5) -> GridSpec:
+    """The grid map laid out like the DEM `hexjax.world.dem.dem_for` rasterises for `terrain_spec` terrains (same
+    origin, cell and size), so a perceived map and the true DEM compare cell by cell."""
+    origin, (nx, ny), cell = dem_layout(terrain_spec, margin)
+    return GridSpec(origin=(float(origin[0]), float(origin[1])), cell=float(cell), nx=nx, ny=ny)
 
 
 def cell_index(spec: GridSpec, xy):

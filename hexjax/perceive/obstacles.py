@@ -81,13 +81,18 @@ def circles(spec: GridSpec, mask, q: int, near=None) -> Circles:
                    cells=jnp.where(ok, cnt[top], 0.0).astype(jnp.int32))
 
 
-def map_obstacles(spec: GridSpec, grid: GridMap, key, threshold: float, q: int, near=None, n_hyp: int = 128,
-                  inlier: float = 0.01):
-    """(ground `Plane`, obstacle mask (nx, ny), `Circles`) of a fused map: RANSAC (`n_hyp` hypotheses, inliers
-    within `inlier` m) over the known cells' mean heights, cells more than `threshold` m above that plane, and
-    up to `q` circles (nearest to `near` first)."""
+def map_ground(spec: GridSpec, grid: GridMap, key, n_hyp: int = 128, inlier: float = 0.01) -> Plane:
+    """The ground `Plane` of a fused map: RANSAC (`n_hyp` hypotheses, inliers within `inlier` m) over the known
+    cells' mean heights at their centres."""
     h, known = grid.heights()
     cells = jnp.concatenate([jnp.asarray(spec.centres()).reshape(-1, 2), h.reshape(-1, 1)], -1)
-    plane = fit_plane(cells, known.reshape(-1), key, n_hyp, inlier)
+    return fit_plane(cells, known.reshape(-1), key, n_hyp, inlier)
+
+
+def map_obstacles(spec: GridSpec, grid: GridMap, key, threshold: float, q: int, near=None, n_hyp: int = 128,
+                  inlier: float = 0.01):
+    """(ground `Plane`, obstacle mask (nx, ny), `Circles`) of a fused map: the ground (`map_ground`), cells more
+    than `threshold` m above that plane, and up to `q` circles (nearest to `near` first)."""
+    plane = map_ground(spec, grid, key, n_hyp, inlier)
     mask = obstacle_cells(spec, grid, plane, threshold)
     return plane, mask, circles(spec, mask, q, near=near)

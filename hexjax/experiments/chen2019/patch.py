@@ -15,7 +15,7 @@ from tqdm.auto import tqdm
 from hexjax.control.gait import GaitController, GaitParams
 from hexjax.control.perceive_support import PerceivingSupportPlan
 from hexjax.control.support_gait import SupportPlanController
-from hexjax.perceive.grid import GridSpec
+from hexjax.perceive.grid import dem_grid
 from hexjax.sim.config import PhysicsConfig, RolloutConfig
 from hexjax.sim.rollout import rollout
 from hexjax.world.dem import dem_for, dem_layout
@@ -82,9 +82,7 @@ def run_chen2019(n: int = 16, seed: int = 0, robot: str = "chen2019", duration: 
     pp = jax.tree_util.tree_map(tile, pp.replace(dem=None)).replace(dem=true_dem)
     variants = [("planned", planned, pp, True)]
     if sensor is not None:
-        origin, (nx, ny), cell = dem_layout(spec)
-        grid = GridSpec(origin=(float(origin[0]), float(origin[1])), cell=float(cell), nx=nx, ny=ny)
-        variants.append(("perceived", PerceivingSupportPlan(rb, sensor=sensor, grid=grid,
+        variants.append(("perceived", PerceivingSupportPlan(rb, sensor=sensor, grid=dem_grid(spec),
                                                             perceive_every=perceive_every), pp, True))
     for h in fixed_step_heights:
         # the Luneckas 2020 tripod moves the torso l per swing slot: the same advance per phase as `stride`
@@ -128,6 +126,7 @@ def run_chen2019(n: int = 16, seed: int = 0, robot: str = "chen2019", duration: 
                                    cat(lambda s: s.final_state.grid.count) > 0)
             row["scans_per_walk"] = float(np.mean(cat(lambda s: s.final_state.scans)))
             res["_perceived_dem"] = cat(lambda s: s.final_state.heights)
+            res["_true_dem"] = np.asarray(true_dem.heights)
         res[name] = row
         res["_records"][name] = {"trace": cat(lambda s: s.trace), "ctrl": cat(lambda s: s.ctrl_trace),
                                  "fell": cat(lambda s: s.fell)}

@@ -43,15 +43,12 @@ def plot(res: Dict, png: str, env: int = 0) -> None:
     paths over the true heights."""
     import matplotlib
     matplotlib.use("Agg")
-    import jax
     import matplotlib.pyplot as plt
 
-    from hexjax.world.dem import dem_for, dem_layout
+    from hexjax.world.dem import dem_layout
 
-    spec = patch.patch_spec()
-    origin, (nx, ny), cell = dem_layout(spec)
-    true = np.asarray(dem_for(spec, jax.tree_util.tree_map(lambda x: x[env:env + 1], res["_terrain"])).heights[0])
-    seen = np.asarray(res["_perceived_dem"][env])
+    origin, (nx, ny), cell = dem_layout(patch.patch_spec())
+    true, seen = res["_true_dem"][env], np.asarray(res["_perceived_dem"][env])
     ext = (origin[0], origin[0] + nx * cell, origin[1], origin[1] + ny * cell)
     fig, ax = plt.subplots(1, 3, figsize=(14, 4.4))
     vmax = float(true.max())

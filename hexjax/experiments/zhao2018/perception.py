@@ -17,7 +17,7 @@ from tqdm.auto import tqdm
 from hexjax.control.avoid_gait import AvoidGaitController
 from hexjax.control.perceive_gait import PerceivingAvoidGait, map_bounds
 from hexjax.experiments.zhao2018.closed_loop import field_setup, run_closed_loop, seeded_fields
-from hexjax.perceive.grid import GridSpec
+from hexjax.perceive.grid import GridMap, GridSpec
 from hexjax.perceive.sensors import get_sensor
 from hexjax.plan.avoid import AvoidConfig
 from hexjax.world.presets import get_robot
@@ -232,8 +232,8 @@ def plot_fields(res: Dict, png: str, k: int = 6):
         i = int(order[slot])
         if perc is not None:
             fin = perc["_final"]
-            h, cnt = np.asarray(fin.grid.sum_z[i]), np.asarray(fin.grid.count[i])
-            mean = np.where(cnt > 0, h / np.maximum(cnt, 1), np.nan)
+            h, known = GridMap(sum_z=fin.grid.sum_z[i], count=fin.grid.count[i]).heights()
+            mean = np.where(np.asarray(known), np.asarray(h), np.nan)
             spec = res["_perceived_grid"]
             ext = [spec.origin[0], spec.origin[0] + spec.nx * spec.cell, spec.origin[1], spec.origin[1] + spec.ny * spec.cell]
             ax.imshow(mean.T, origin="lower", extent=ext, cmap="viridis", vmin=0, vmax=0.25, alpha=0.6)
