@@ -76,6 +76,45 @@ def _free_compiled_rollouts():
     jax.clear_caches()
 
 
+# Compile time per test, from JAX's monitoring events: tracing, lowering and the backend compile (or the load of
+# a program the persistent cache holds), how many programs took a second or more there (on a cold cache: the
+# compiles that matter), and how many were loaded from the persistent cache. A module-scoped fixture counts for
+# the test that builds it. Programs compiled in a subprocess are not seen.
+_COMPILE = {}
+_CURRENT = [None]
+_LISTENING = []
+_EVENTS = {"/jax/core/compile/jaxpr_trace_duration", "/jax/core/compile/jaxpr_to_mlir_module_duration",
+           "/jax/core/compile/backend_compile_duration"}
+
+
+def _listen_once():
+    if _LISTENING:
+        return
+    _LISTENING.append(True)
+    from jax import monitoring
+
+    def duration(event, secs, **_):
+        if _CURRENT[0] is not None and event in _EVENTS:
+            _COMPILE[_CURRENT[0]][0] += secs
+            _COMPILE[_CURRENT[0]][1] += event.endswith("backend_compile_duration") and secs >= 1.0
+
+    def count(event, **_):
+        if _CURRENT[0] is not None and event == "/jax/compilation_cache/cache_hits":
+            _COMPILE[_CURRENT[0]][2] += 1
+
+    monitoring.register_event_duration_secs_listener(duration)
+    monitoring.register_event_listener(count)
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_protocol(item, nextitem):
+    _listen_once()
+    _CURRENT[0] = item.nodeid
+    _COMPILE.setdefault(item.nodeid, [0.0, 0, 0])
+    yield
+    _CURRENT[0] = None
+
+
 def _peak_gib() -> float:
     import resource
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024 ** 2
@@ -84,12 +123,28 @@ def _peak_gib() -> float:
 def pytest_sessionfinish(session):
     if hasattr(session.config, "workeroutput"):  # a pytest-xdist worker: report to the controller
         session.config.workeroutput["peak_rss_gib"] = _peak_gib()
+        session.config.workeroutput["compile"] = _COMPILE
+
+
+_WORKER_COMPILE = {}
 
 
 def pytest_testnodedown(node, error):
-    _PEAKS.append(node.workeroutput.get("peak_rss_gib", 0.0) if hasattr(node, "workeroutput") else 0.0)
+    out = node.workeroutput if hasattr(node, "workeroutput") else {}
+    _PEAKS.append(out.get("peak_rss_gib", 0.0))
+    _WORKER_COMPILE.update(out.get("compile", {}))
 
 
 def pytest_terminal_summary(terminalreporter):
     peaks = _PEAKS or [_peak_gib()]
     terminalreporter.write_line("peak resident memory per test process: " + ", ".join(f"{p:.1f} GiB" for p in peaks))
+    comp = _WORKER_COMPILE or _COMPILE
+    if comp:
+        total = sum(v[0] for v in comp.values())
+        terminalreporter.write_line(
+            f"JAX compile (trace + lower + compile or cache load) {total:.0f} s in all; {sum(v[1] for v in comp.values())}"
+            f" programs took >= 1 s, {sum(v[2] for v in comp.values())} were loaded from the cache; the most per test:")
+        for nodeid, (secs, miss, hit) in sorted(comp.items(), key=lambda kv: -kv[1][0])[:15]:
+            if secs < 0.05:
+                break
+            terminalreporter.write_line(f"  {secs:7.1f} s  {miss:3d} >= 1 s {hit:3d} loaded  {nodeid}")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import time
 from typing import Dict
 
@@ -22,6 +23,26 @@ def _device_put_replicated(x, devices):
     return jax.tree_util.tree_map(lambda a: jax.device_put(jnp.stack([jnp.asarray(a)] * len(devices)), sharding), x)
 
 
+def _evaluate_with_fixed_types(run_evaluation):
+    """brax 0.14.2's `Evaluator.run_evaluation`, fed inputs of one type. Its first evaluation gets the initial
+    normaliser, whose `std_eps` is a weakly typed scalar, and uncommitted arrays; every later one gets
+    strongly typed arrays committed to a device (a training step's outputs). JAX traces and compiles the
+    evaluation unroll once for each (26-29 s of XLA compile on 2 CPU cores the second time, found with
+    JAX_EXPLAIN_CACHE_MISSES). Here every call gets strong types, committed to the device the first of them
+    is on, so the first program serves them all."""
+    @functools.wraps(run_evaluation)
+    def run(self, policy_params, *args, **kwargs):
+        device = jax.tree_util.tree_leaves(self._eval_state_to_donate)[0].devices().pop()
+
+        def fixed(x):
+            x = jnp.asarray(x)
+            return jax.device_put(x.astype(x.dtype), device)
+        self._eval_state_to_donate = jax.tree_util.tree_map(fixed, self._eval_state_to_donate)
+        return run_evaluation(self, jax.tree_util.tree_map(fixed, policy_params), *args, **kwargs)
+    run.fixed_types = True
+    return run
+
+
 def train_ppo(env: HexapodGoalEnv, num_timesteps: int = 60_000, num_envs: int = 16, episode_length: int = 100,
               num_evals: int = 4, seed: int = 0, progress=None, **ppo_kwargs):
     """Brax PPO on `env`. Returns (eval history [(env steps, mean episode reward)], make_policy, params).
@@ -29,6 +50,9 @@ def train_ppo(env: HexapodGoalEnv, num_timesteps: int = 60_000, num_envs: int = 
     from brax.training.agents.ppo import train as ppo  # brax is the optional `rl` extra
     if "device_put_replicated" not in vars(jax):  # brax 0.14.2 on jax >= 0.10 (see _device_put_replicated)
         jax.device_put_replicated = _device_put_replicated
+    from brax.training import acting
+    if not getattr(acting.Evaluator.run_evaluation, "fixed_types", False):  # see _evaluate_with_fixed_types
+        acting.Evaluator.run_evaluation = _evaluate_with_fixed_types(acting.Evaluator.run_evaluation)
     history = []
 
     def on_progress(step, metrics):

@@ -45,14 +45,23 @@ def travel_objective(fn, model, space, params, terrain, keys):
 
 
 def check(obj: Callable, u0: Mapping[str, jax.Array], groups: Mapping[str, List[str]], eps=(1e-3,),
-          static: Optional[tuple] = None):
+          static: Optional[tuple] = None, one_program: bool = False):
     """Per central-difference step in `eps`: {group: (cosine, autodiff vector, FD vector)}, with the jitted
     autodiff gradient of `obj` at `u0` taken once. Returns (objective at u0, {eps: results}).
-    static: what obj is made from (its arrays through `arrays_digest`), to keep its two compiled programs on
-    disk (`hexjax.sim.compiled`): a second run skips tracing them (20-40 s each on 2 cores)."""
-    vg, f = jax.jit(jax.value_and_grad(obj)), jax.jit(obj)
+    static: what obj is made from (its arrays through `arrays_digest`), to keep its compiled programs on
+    disk (`hexjax.sim.compiled`): a second run skips tracing them (20-40 s each on 2 cores).
+    one_program: take the differences from the value that the value_and_grad program returns instead of a
+    forward program of their own: one compile instead of two (a rollout's forward costs 15-40 s of XLA
+    compile on 2 cores), each of the 2 x (number of params) evaluations then costing a gradient (about 4
+    forwards). Worth it where the batch is small and the program is compiled once, as in the tests."""
+    vg = jax.jit(jax.value_and_grad(obj))
     if static is not None:
         vg = Compiled(vg, static=("gradcheck/value_and_grad",) + tuple(static))
-        f = Compiled(f, static=("gradcheck/value",) + tuple(static))
+    if one_program:
+        f = lambda u: vg(u)[0]
+    else:
+        f = jax.jit(obj)
+        if static is not None:
+            f = Compiled(f, static=("gradcheck/value",) + tuple(static))
     value, grad = vg(u0)
     return float(value), {e: group_cosines(grad, central_differences(f, u0, e), groups) for e in eps}
