@@ -97,10 +97,15 @@ def field_setup(ctrl: AvoidGaitController):
     return g, small_robot_params(ctrl.robot, float(g.step_length), ctrl.advance(g))
 
 
+def seed_keys(seed: int):
+    """(fields, obstacle boxes, rollouts) keys of the closed loop for `seed`."""
+    return tuple(jax.random.split(jax.random.PRNGKey(seed), 3))
+
+
 def seeded_fields(seed: int, n: int, ap):
     """The n random fields `run_closed_loop` draws for `seed` (`small_fields` with the planner's robot radius
     and d_max), and the key for the obstacle boxes."""
-    k_field, k_box, _ = jax.random.split(jax.random.PRNGKey(seed), 3)
+    k_field, k_box, _ = seed_keys(seed)
     return small_fields(k_field, n, float(ap.robot_radii[0]), float(ap.d_max)), k_box
 
 
@@ -118,7 +123,7 @@ def run_closed_loop(n: int = 32, seed: int = 0, robot: str = "luneckas2020", n_T
     rb = get_robot(robot)
     ctrl = controller or AvoidGaitController(rb, avoid=AvoidConfig(n_T=n_T, max_cycles=40))
     g, ap = field_setup(ctrl)
-    k_field, k_box, k_roll = jax.random.split(jax.random.PRNGKey(seed), 3)
+    _, k_box, k_roll = seed_keys(seed)
     if fields is None:
         if not (isinstance(n, int) and n >= 1):
             raise ValueError(f"fields n={n!r}: must be an integer >= 1")
