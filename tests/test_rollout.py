@@ -1,4 +1,5 @@
 import dataclasses
+import re
 
 import jax
 import jax.numpy as jnp
@@ -8,9 +9,10 @@ import pytest
 from hexjax.control.base import Controller
 from hexjax.control.gait import GaitController
 from hexjax.experiments.metrics import goal_errors
-from hexjax.sim.config import PhysicsConfig, RolloutConfig
+from hexjax.sim.config import PhysicsConfig, RolloutConfig, SensorConfig
 from hexjax.sim.model import SimModel, contact_geoms, mjx
-from hexjax.sim.rollout import make_mesh, rollout
+from hexjax.sim.rollout import _compiled, make_mesh, rollout
+from hexjax.sim.step import control_steps
 from hexjax.world.presets import get_terrain, luneckas2020
 from hexjax.world.terrain import sample
 
@@ -78,9 +80,17 @@ def test_sharded_rollout_matches_unsharded():
     p = c.default_params()
     terr = sample(get_terrain("flat"), jax.random.PRNGKey(4), 4)
     a = rollout(spec, terr, c, p, 1.0, jax.random.PRNGKey(5), physics=FLAT)
-    b = rollout(spec, terr, c, p, 1.0, jax.random.PRNGKey(5), physics=FLAT, mesh=make_mesh(devs[:2]))
+    mesh = make_mesh(devs[:2])
+    b = rollout(spec, terr, c, p, 1.0, jax.random.PRNGKey(5), physics=FLAT, mesh=mesh)
     assert len(b.end_pose.sharding.device_set) == 2
     np.testing.assert_allclose(np.asarray(a.end_pose), np.asarray(b.end_pose), atol=1e-4)
+    # each device steps its own envs: no collective in the program (automatic partitioning of the vmapped
+    # rollout all-reduced the solver's stopping flag over the devices in every Newton iteration)
+    _, fn = _compiled(spec, FLAT, SensorConfig(), c, RolloutConfig(), control_steps(1.0, c.dt), False, "jax", False,
+                      mesh)
+    (exe,) = fn.executables.values()
+    hlo = exe.as_text()
+    assert "while" in hlo and not re.search(r"\b(all-reduce|all-gather|collective-permute|all-to-all)", hlo)
 
 
 def test_contact_map_matches_mjx_forward():

@@ -55,8 +55,10 @@ class RolloutStats:
 
 @functools.lru_cache(maxsize=32)
 def _compiled(robot: RobotSpec, physics: PhysicsConfig, sensors: SensorConfig, controller: Controller,
-              cfg: RolloutConfig, n_ctrl: int, params_batched: bool, impl: str = "jax", perturbed: bool = False):
-    """(SimModel, Compiled batched rollout) for one static setting; cached, as its compile is the cost."""
+              cfg: RolloutConfig, n_ctrl: int, params_batched: bool, impl: str = "jax", perturbed: bool = False,
+              mesh: Optional[Mesh] = None):
+    """(SimModel, Compiled batched rollout) for one static setting; cached, as its compile is the cost. With a
+    `mesh`, each device runs the vmapped rollout of its own envs (`jax.shard_map` over the 'batch' axis)."""
     sm = sim_model(robot, physics, impl)
     n_settle = settle_steps(cfg, controller.dt)
     ctrl0_default = jnp.asarray(sm.ctrl0)
@@ -101,11 +103,28 @@ def _compiled(robot: RobotSpec, physics: PhysicsConfig, sensors: SensorConfig, c
         with solve():
             return run(m_shared, params, terrain, keys, d_template, pert)
 
+    if mesh is not None:
+        # Left to jit's automatic partitioning, the vmapped MJX solver's while-loop runs until every env of the
+        # whole batch has converged, so every Newton iteration of every physics step all-reduced its stopping
+        # flag over the devices (over the network with several processes), a synchronisation per iteration.
+        # Here each device's loop waits for its own envs only; each env's numbers are the same either way (a
+        # converged env's iterate is held while the others go on).
+        unsharded, env, shared = batched, P("batch"), P()
+
+        def batched(m_shared, params, terrain, keys, d_template=None, pert=None):
+            def local(m, p, t, k, pe):
+                return unsharded(m, p, t, k, None, pe)
+            specs = (shared, env if params_batched else shared, env, env, env if perturbed else shared)
+            return jax.shard_map(local, mesh=mesh, in_specs=specs, out_specs=env, check_vma=False)(
+                m_shared, params, terrain, keys, pert)
+
     # a program with host callbacks (progress) or MuJoCo Warp's kernels does not export: keep none of it
     keep = impl == "jax" and not cfg.progress_every
     static = (robot, physics, sensors, controller, cfg, n_ctrl, params_batched, impl) if keep else None
     if keep and perturbed:
         static += ("perturbed",)
+    if keep and mesh is not None:
+        static += (mesh,)
     return sm, Compiled(jax.jit(batched), static=static)
 
 
@@ -177,7 +196,8 @@ def rollout(robot: RobotSpec, terrain: Terrain, controller: Controller, params, 
         compiled = "compiled" if compile_s else "process"
     else:
         impl = "warp" if backend == "warp" else "jax"
-        sm, fn = _compiled(robot, physics, sensors, controller, config, n_ctrl, params_batched, impl, perturbed)
+        sm, fn = _compiled(robot, physics, sensors, controller, config, n_ctrl, params_batched, impl, perturbed,
+                           mesh)
         keys = jax.random.split(key, b)
         model = sm.mjx_model
         if mesh is not None:
