@@ -109,12 +109,12 @@ def _compiled(robot: RobotSpec, physics: PhysicsConfig, sensors: SensorConfig, c
         # flag over the devices (over the network with several processes), a synchronisation per iteration.
         # Here each device's loop waits for its own envs only; each env's numbers are the same either way (a
         # converged env's iterate is held while the others go on).
-        unsharded, env, shared = batched, P("batch"), P()
+        env, shared = P("batch"), P()
+        specs = (shared, env if params_batched else shared, env, env, env if perturbed else shared)
 
-        def batched(m_shared, params, terrain, keys, d_template=None, pert=None):
-            def local(m, p, t, k, pe):
-                return unsharded(m, p, t, k, None, pe)
-            specs = (shared, env if params_batched else shared, env, env, env if perturbed else shared)
+        def sharded(m_shared, params, terrain, keys, d_template=None, pert=None):
+            def local(m, p, t, k, pe):  # MJX only: no data template
+                return batched(m, p, t, k, None, pe)
             return jax.shard_map(local, mesh=mesh, in_specs=specs, out_specs=env, check_vma=False)(
                 m_shared, params, terrain, keys, pert)
 
@@ -125,7 +125,7 @@ def _compiled(robot: RobotSpec, physics: PhysicsConfig, sensors: SensorConfig, c
         static += ("perturbed",)
     if keep and mesh is not None:
         static += (mesh,)
-    return sm, Compiled(jax.jit(batched), static=static)
+    return sm, Compiled(jax.jit(batched if mesh is None else sharded), static=static)
 
 
 def _check_static(robot: RobotSpec, controller, duration, physics: PhysicsConfig, config: RolloutConfig) -> int:
