@@ -16,6 +16,7 @@ from hexjax.sim.config import PhysicsConfig, RolloutConfig, physics_for
 from hexjax.sim.implicit import implicit_solve, implicit_solver
 from hexjax.sim.model import mjx, reversible_solver, sim_model
 from hexjax.sim.rollout import rollout_function
+from hexjax.sim.step import stop_derived
 from hexjax.world.presets import luneckas2020
 
 ITERATIONS = 30  # enough Newton iterations for the solve to converge on every step below
@@ -35,14 +36,16 @@ def standing():
     return m, d
 
 
-def _walk(m, d, k: int):
-    """f(a): torso position and velocity after k physics steps with the servo targets swept by a * w sin(t)."""
+def _walk(m, d, k: int, stop: bool = False):
+    """f(a): torso position and velocity after k physics steps with the servo targets swept by a * w sin(t);
+    `stop`: gradient from step to step through `hexjax.sim.step.GRAD_FIELDS` only, as in a rollout."""
     w = jnp.asarray(np.random.RandomState(0).randn(m.nu).astype(np.float32))
 
     def f(a):
         def body(x, i):
             x = x.replace(ctrl=d.ctrl + a * 0.3 * w * jnp.sin(0.05 * (i + 1)))
-            return mjx.step(m, x), None
+            x = mjx.step(m, x)
+            return (stop_derived(x) if stop else x), None
         x, _ = jax.lax.scan(body, d, jnp.arange(k))
         return jnp.concatenate([x.qpos[:3], x.qvel[:3]])
     return f
@@ -66,6 +69,18 @@ def test_converged_jacobian_matches_unrolled_and_central_differences(standing):
     assert scale > 1e-3, j_unrolled
     assert np.linalg.norm(j_implicit - j_unrolled) <= 1e-3 * scale, (j_implicit, j_unrolled)
     assert np.linalg.norm(j_implicit - fd) <= 0.05 * scale, (j_implicit, fd)
+
+
+def test_steps_depend_on_each_other_through_grad_fields_only(standing):
+    """MJX's step reads nothing from the previous step's Data outside `GRAD_FIELDS`: with the gradient
+    stopped on every other field between steps, the 5-step Jacobian is the same (unrolled solver, so the
+    warm start's path counts too)."""
+    m, d = standing
+    with reversible_solver(ITERATIONS):
+        full = np.asarray(jax.jit(jax.jacrev(_walk(m, d, 5)))(1.0))
+        cut = np.asarray(jax.jit(jax.jacrev(_walk(m, d, 5, stop=True)))(1.0))
+    assert np.abs(full).max() > 1e-4
+    np.testing.assert_allclose(cut, full, rtol=1e-5, atol=1e-6 * np.abs(full).max())
 
 
 def test_forces_and_acceleration_jacobian_against_unrolled(standing):
@@ -102,3 +117,48 @@ def test_solver_grad_is_checked_before_tracing():
     with pytest.raises(ValueError, match="physics.cone='elliptic'"):
         rollout_function(robot, GaitController(robot), 0.1, config=RolloutConfig(solver_grad="implicit"),
                          physics=dataclasses.replace(PhysicsConfig(), cone="elliptic"))
+
+
+def test_rollout_gradient_unchanged_by_stopping_derived_fields(monkeypatch):
+    """A rollout's gradient is the same with the gradient stopped outside `GRAD_FIELDS` between steps (what
+    the rollout does) and without: nothing hexjax reads from the last step's Data (foot sites for the slot
+    assignment, contact forces and frames for the tactile pads) is missing from the list. Obstacle terrain,
+    smooth tactile gait, implicit backward, truncated windows and bound as in tuning."""
+    from jax.flatten_util import ravel_pytree
+
+    import hexjax.cache
+    from hexjax.control.tactile import TactileGaitController
+    from hexjax.sim import rollout as rollout_mod
+    from hexjax.sim import step as step_mod
+    from hexjax.tune.gradcheck import travel_objective
+    from hexjax.tune.space import make_space
+    from hexjax.world.presets import get_terrain
+    from hexjax.world.terrain import sample
+
+    robot = luneckas2020()
+    ctrl = TactileGaitController(robot, gait="tripod", smooth=True)
+    p = ctrl.default_params().replace(swing_time=jnp.float32(0.2), tactile_threshold=jnp.float32(0.1),
+                                      temperature=jnp.float32(0.1))
+    space = make_space("tactile")
+    spec = get_terrain("high-small")
+    terr = sample(spec, jax.random.PRNGKey(0), 2)
+    keys = jax.random.split(jax.random.PRNGKey(1), 2)
+    rc = RolloutConfig(settle_time=0.1, solver_grad="implicit", grad_window=10, grad_clip=1.0, remat=True)
+
+    def grad():
+        rollout_mod._compiled.cache_clear()
+        model, fn = rollout_function(robot, ctrl, 0.3, physics=physics_for(spec.kind), config=rc)
+        u0 = space.init(p)
+        return np.asarray(ravel_pytree(jax.jit(jax.grad(travel_objective(fn, model, space, p, terr, keys)))(u0))[0])
+
+    # programs kept on disk are keyed by hexjax's source, not by the patch below: trace both here
+    monkeypatch.setattr(hexjax.cache, "cache_dir", lambda: None)
+    cut = grad()
+    identity = lambda d: d  # noqa: E731
+    monkeypatch.setattr(step_mod, "stop_derived", identity)
+    monkeypatch.setattr(rollout_mod, "stop_derived", identity)
+    rollout_mod._compiled.cache_clear()
+    full = grad()
+    rollout_mod._compiled.cache_clear()
+    assert np.all(np.isfinite(full)) and np.abs(full).max() > 1e-4
+    np.testing.assert_allclose(cut, full, rtol=1e-4, atol=1e-5 * np.abs(full).max())

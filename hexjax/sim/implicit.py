@@ -56,22 +56,25 @@ def implicit_solve(m, d):
     if m.opt.cone != ConeType.PYRAMIDAL:
         raise ValueError("RolloutConfig.solver_grad='implicit' supports the pyramidal friction cone only")
     m_sg, d_sg = _stop(m), _stop(d)
-    out = _MJX_SOLVE(m_sg, d_sg)
+    with jax.named_scope("hx.solve_mjx"):  # scopes name the pieces in profiles (scripts/profile_grad.py)
+        out = _MJX_SOLVE(m_sg, d_sg)
     # named, so that a rematerialised step (`RolloutConfig.remat`, policy `REMAT_POLICY`) keeps the solution
     # and does not run the solver's iterations again in the backward pass
     a_star, frc, efc = (checkpoint_name(x, SOLUTION) for x in (out.qacc, out.qfrc_constraint, out._impl.efc_force))
 
     # H at the solution, cut from the gradient: M + J^T diag(D * active) J, factored once
-    ctx = solver.Context.create(m_sg, d_sg.replace(qacc=a_star), grad=False)
-    j, dd = d_sg._impl.efc_J, d_sg._impl.efc_D
-    h = support.full_m(m_sg, d_sg) + (j.T * (dd * ctx.active)) @ j
-    h = 0.5 * (h + h.T)
-    chol = jax.scipy.linalg.cho_factor(h)
+    with jax.named_scope("hx.implicit_hessian"):
+        ctx = solver.Context.create(m_sg, d_sg.replace(qacc=a_star), grad=False)
+        j, dd = d_sg._impl.efc_J, d_sg._impl.efc_D
+        h = support.full_m(m_sg, d_sg) + (j.T * (dd * ctx.active)) @ j
+        h = 0.5 * (h + h.T)
+        chol = jax.scipy.linalg.cho_factor(h)
 
     # g(a*, theta) with theta live: MJX's own constraint update, so every constraint kind is handled alike
     def residual(qacc):
-        c = solver.Context.create(m, d.replace(qacc=qacc), grad=False)
-        return c.Ma - d.qfrc_smooth - c.qfrc_constraint, c
+        with jax.named_scope("hx.implicit_residual"):
+            c = solver.Context.create(m, d.replace(qacc=qacc), grad=False)
+            return c.Ma - d.qfrc_smooth - c.qfrc_constraint, c
 
     g, _ = residual(a_star)
     delta = -jax.scipy.linalg.cho_solve(chol, g)

@@ -24,7 +24,8 @@ from hexjax.sim.compiled import Compiled
 from hexjax.sim.config import PhysicsConfig, RolloutConfig, SensorConfig
 from hexjax.sim.implicit import REMAT_POLICY, implicit_solver
 from hexjax.sim.model import mjx, reversible_solver, sim_model
-from hexjax.sim.step import Summary, control_steps, end_pose, init_acc, make_control_step, settle_steps, substeps
+from hexjax.sim.step import (Summary, control_steps, end_pose, init_acc, make_control_step, settle_steps, stop_derived,
+                             substeps)
 from hexjax.world.robot import RobotSpec
 from hexjax.world.terrain import Terrain
 
@@ -76,6 +77,8 @@ def _compiled(robot: RobotSpec, physics: PhysicsConfig, sensors: SensorConfig, c
         acc0 = init_acc(jnp.stack([d0.qpos[0], d0.qpos[1], yaw0]))
         # forward once so site positions exist before the first slot assignment
         d0 = mjx.forward(m_shared, d0)
+        if impl == "jax":  # gradients cross control steps through the state only (`hexjax.sim.step.GRAD_FIELDS`)
+            d0 = stop_derived(d0)
 
         # the range sensor's noise (controllers with a `sensor` only: other programs stay as they were)
         k_sense = jax.random.fold_in(key, 1) if getattr(controller, "sensor", None) is not None else None

@@ -32,6 +32,25 @@ from hexjax.world.terrain import Terrain
 # over the whole Data is not possible; the rest is recomputed from them by the next step)
 STATE_FIELDS = ("qpos", "qvel", "act", "time", "qacc_warmstart")
 
+# mjx.Data fields through which the next physics or control step depends on this one: the integration state
+# (MJX's `step` recomputes everything else from it) and what hexjax reads from the last step's Data (foot sites
+# for the slot assignment in `env_view`, contact forces and frames in `read_obs`). Every other field is derived
+# and never read across steps, so its gradient there is zero; `stop_derived` makes that zero symbolic, or the
+# scan's transpose would carry a dense cotangent of the whole Data (~55 kB an env) through every step and
+# run the backward of every derived field on it.
+GRAD_FIELDS = frozenset({".qpos", ".qvel", ".act", ".time", ".qacc_warmstart", ".ctrl", ".mocap_pos", ".mocap_quat",
+                         ".qfrc_applied", ".xfrc_applied", ".site_xpos", "._impl.efc_force",
+                         "._impl.contact.frame", "._impl.contact.friction"})
+
+
+def stop_derived(d):
+    """`d` (MJX-JAX Data) with the gradient stopped on every float field outside `GRAD_FIELDS`; the same in value."""
+    def f(path, x):
+        if jax.tree_util.keystr(path) in GRAD_FIELDS or not jnp.issubdtype(jnp.asarray(x).dtype, jnp.inexact):
+            return x
+        return jax.lax.stop_gradient(x)
+    return jax.tree_util.tree_map_with_path(f, d)
+
 
 @struct.dataclass
 class Summary:
@@ -166,11 +185,13 @@ def env_view(sm: SimModel, sensors: SensorConfig, terrain: Terrain, d, base=None
     return m, d, read_obs(sm, sensors, m, d)
 
 
-def physics(m, d, n_sub: int):
-    """`n_sub` mjx.step calls: (data after them, actuator power |torque * joint rate| (n_sub,) W)."""
+def physics(m, d, n_sub: int, stop: bool = False):
+    """`n_sub` mjx.step calls: (data after them, actuator power |torque * joint rate| (n_sub,) W). `stop`: pass
+    gradient from step to step through `GRAD_FIELDS` only (`stop_derived`; MJX-JAX Data)."""
     def sub(dd, _):
         dd = mjx.step(m, dd)
-        return dd, jnp.sum(jnp.abs(dd.actuator_force * dd.qvel[6:]))
+        power = jnp.sum(jnp.abs(dd.actuator_force * dd.qvel[6:]))
+        return (stop_derived(dd) if stop else dd), power
 
     return jax.lax.scan(sub, d, None, length=n_sub)
 
@@ -241,7 +262,8 @@ def make_control_step(sm: SimModel, sensors: SensorConfig, cfg: RolloutConfig, c
             d, cstate = cut_gradient((d, cstate), i % cfg.grad_window == 0)
         if cfg.grad_clip is not None:
             d, cstate = clip_cotangent((d, cstate), cfg.grad_clip)
-        m, d, obs = env_view(sm, sensors, terrain, d, base=m_shared)
+        with jax.named_scope("hx.env_view"):  # scopes name the stages in profiles (scripts/profile_grad.py)
+            m, d, obs = env_view(sm, sensors, terrain, d, base=m_shared)
         obs_true = obs
         if pert is not None:
             t_walk = (i - n_settle) * controller.dt
@@ -253,7 +275,8 @@ def make_control_step(sm: SimModel, sensors: SensorConfig, cfg: RolloutConfig, c
                                  "sense_key (one PRNG key per env) to draw the scans' noise")
             cstate = jax.lax.cond((i >= n_settle) & ((i - n_settle) % every == 0),
                                   lambda c: sense(c, i, params, terrain, d, sense_key), lambda c: c, cstate)
-        new_cstate, action = controller.step(params, cstate, obs)
+        with jax.named_scope("hx.controller"):
+            new_cstate, action = controller.step(params, cstate, obs)
         walking = i >= n_settle
         action = jnp.where(walking, action, ctrl0)
         cstate = jax.tree_util.tree_map(lambda a, b: jnp.where(walking, a, b), new_cstate, cstate)
@@ -262,10 +285,11 @@ def make_control_step(sm: SimModel, sensors: SensorConfig, cfg: RolloutConfig, c
         if cfg.grad_clip is not None:  # the physics' gradient reaches the controller through the action
             action = clip_cotangent(action, cfg.grad_clip)
         d = d.replace(ctrl=action)
-        d_new, power = physics(m, d, n_sub)
+        d_new, power = physics(m, d, n_sub, stop=sm.impl == "jax")
         d_new, finite = keep_finite(d_new, d, sm.impl == "warp")
-        acc = accumulate(acc, cfg, i, n_settle, controller.dt, d.qpos, d_new.qpos, finite, jnp.sum(power) * dt,
-                         obs_true.tactile, terrain.ground_z)
+        with jax.named_scope("hx.accumulate"):
+            acc = accumulate(acc, cfg, i, n_settle, controller.dt, d.qpos, d_new.qpos, finite, jnp.sum(power) * dt,
+                             obs_true.tactile, terrain.ground_z)
         out = None
         if cfg.record:
             out = dict(pose=jnp.concatenate([d_new.qpos[:3], quat_yaw(d_new.qpos[3:7])[None]]),

@@ -1,0 +1,184 @@
+"""Where does a gradient of the tuning objective spend its device time? (issue 19)
+
+Profiles one call of the smooth forward objective and one of its `jax.value_and_grad` (the programs
+`hexjax bench --grad` times) with the JAX profiler, and attributes every kernel's time to
+- a phase: `backward` for ops inside the transposed program, which with remat includes the recomputation of
+  each control step's forward (`rematted_computation` in the op name), `forward` for the rest, read from the
+  JAX op name XLA keeps in each instruction's metadata, and
+- a stage: the named scopes in the op's name: MJX's (`fwd_position`: kinematics, collision, constraints;
+  `fwd_velocity`, `fwd_actuation`, `fwd_acceleration`, `solve`, `euler`) and hexjax's (`hx.*`: the controller,
+  the implicit backward's pieces, ...).
+
+Prints a table per program and writes JSON (`--json`). Shorten the walk with `--set distance=0.2` (compile
+time does not depend on it), or to a few control steps with `--duration 0.2 --settle 0.1`: the profiler
+drops events past a few million. Run it where the numbers matter: the GPU, through the device tool. There
+XLA groups kernels into command buffers (CUDA graphs), which the profile shows as one op each; set
+`XLA_FLAGS=--xla_gpu_enable_command_buffer=` to see every kernel (wall times then include launch gaps).
+
+    python scripts/profile_grad.py --config tactile_tripod --batch 4096 --set distance=0.2 --json prof.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import dataclasses
+import glob
+import gzip
+import json
+import os
+import re
+import tempfile
+import time
+
+import jax
+import numpy as np
+
+from hexjax.sim.config import RolloutConfig
+from hexjax.sim.rollout import rollout_function
+from hexjax.tune.config import load_tune_config
+from hexjax.tune.objective import Problem
+
+_META = re.compile(r"^\s*(?:ROOT\s+)?%?([\w.\-]+)\s*=.*?metadata=\{([^}]*)\}")
+# named scopes that mark a stage in an op's name: MJX's (`mujoco.mjx._src.forward`) and hexjax's own (`hx.*`)
+_SCOPES = {"fwd_position", "fwd_velocity", "fwd_actuation", "fwd_acceleration", "solve", "euler", "_advance",
+           "_integrate_pos", "implicit", "rungekutta4"}
+_CONTAINERS = ("while", "conditional", "call")  # CPU thunks that contain other thunks: counted through those
+
+
+def _metadata(hlo_text: str) -> dict:
+    """instruction name -> JAX op name (the named-scope path) from an optimised HLO module's text."""
+    out = {}
+    for line in hlo_text.splitlines():
+        m = _META.match(line)
+        if m:
+            op = re.search(r'op_name="([^"]*)"', m.group(2))
+            out[m.group(1)] = op.group(1) if op else ""
+    return out
+
+
+def _stage(op_name: str) -> str:
+    """The innermost two stage scopes in an op name, e.g. 'fwd_position' or 'solve/hx.implicit_hessian'."""
+    parts = [p for p in op_name.split("/") if p in _SCOPES or p.startswith("hx.")]
+    return "/".join(parts[-2:]) if parts else "other"
+
+
+def _phase(op_name: str) -> str:
+    """'backward' for ops inside the transposed program (with remat, the recomputation too); 'forward' otherwise."""
+    return "backward" if "transpose(" in op_name else "forward"
+
+
+def _kernel_times(trace_dir: str, module: str) -> tuple[dict, float]:
+    """(hlo op -> summed device microseconds, span of the events in s) from the profiler's Perfetto trace,
+    for the events of `module` on the device lanes (the GPU's; all lanes on a CPU)."""
+    (path,) = glob.glob(os.path.join(trace_dir, "**", "*perfetto_trace.json.gz"), recursive=True)
+    with gzip.open(path) as f:
+        data = json.load(f)
+    events = data["traceEvents"] if isinstance(data, dict) else data
+    pnames = {e["pid"]: e["args"]["name"] for e in events
+              if e.get("ph") == "M" and e.get("name") == "process_name" and "args" in e}
+    gpu_pids = {p for p, n in pnames.items() if "GPU" in n or "gpu" in n}
+    times, t_lo, t_hi = collections.Counter(), np.inf, -np.inf
+    for e in events:
+        a = e.get("args") or {}
+        if e.get("ph") != "X" or "hlo_op" not in a or module not in str(a.get("hlo_module", "")):
+            continue
+        if gpu_pids and e["pid"] not in gpu_pids:
+            continue
+        if a["hlo_op"].split(".")[0] in _CONTAINERS:
+            continue
+        times[a["hlo_op"]] += float(e.get("dur", 0.0))
+        t_lo, t_hi = min(t_lo, e["ts"]), max(t_hi, e["ts"] + e.get("dur", 0.0))
+    return times, (t_hi - t_lo) * 1e-6 if times else 0.0
+
+
+def profile(fn, args, label: str) -> dict:
+    t0 = time.perf_counter()
+    compiled = fn.lower(*args).compile()
+    compile_s = time.perf_counter() - t0
+    jax.block_until_ready(compiled(*args))
+    t0 = time.perf_counter()
+    jax.block_until_ready(compiled(*args))
+    wall = time.perf_counter() - t0
+    meta = _metadata(compiled.as_text())
+    module = re.search(r"HloModule\s+([\w.\-]+)", compiled.as_text()).group(1)
+    with tempfile.TemporaryDirectory() as tmp:
+        with jax.profiler.trace(tmp, create_perfetto_trace=True):
+            jax.block_until_ready(compiled(*args))
+        times, span = _kernel_times(tmp, module)
+    by = collections.Counter()
+    by_phase = collections.Counter()
+    top = []
+    for op, us in times.items():
+        op_name = meta.get(op, "")
+        ph = _phase(op_name)
+        by[(ph, _stage(op_name))] += us
+        by_phase[ph] += us
+        top.append((us, op, ph, _stage(op_name), op_name[-120:]))
+    total = sum(times.values())
+    top.sort(reverse=True)
+    return dict(label=label, compile_s=round(compile_s, 2), wall_s=round(wall, 4), profiled_span_s=round(span, 4),
+                kernel_s=round(total * 1e-6, 4), kernels=len(times),
+                phases={k: round(v * 1e-6, 4) for k, v in by_phase.most_common()},
+                stages=[dict(phase=k[0], stage=k[1], s=round(v * 1e-6, 4), share=round(v / max(total, 1e-9), 4))
+                        for k, v in by.most_common()],
+                top_ops=[dict(s=round(u * 1e-6, 5), op=o, phase=p, stage=s, op_name=n) for u, o, p, s, n in top[:40]])
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--config", default="tactile_tripod", help="tuning config (configs/tune/) or YAML path")
+    ap.add_argument("--batch", type=int, default=64)
+    ap.add_argument("--solver-grad", default=None, help="override the config's solver_grad (unrolled|implicit)")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="override a top-level config key (YAML value), e.g. distance=0.2")
+    ap.add_argument("--only", choices=("forward", "grad", "both"), default="both")
+    ap.add_argument("--duration", type=float, default=None,
+                    help="s walked, instead of the config's (a short one keeps the trace small)")
+    ap.add_argument("--settle", type=float, default=None, help="s of settling, instead of RolloutConfig's")
+    ap.add_argument("--json", default=None)
+    a = ap.parse_args()
+    import yaml
+    overrides = {k: yaml.safe_load(v) for k, v in (s.split("=", 1) for s in a.set)}
+    if a.solver_grad:
+        overrides["solver_grad"] = a.solver_grad
+    cfg = load_tune_config(a.config, overrides)
+    prob = Problem.build(cfg)
+    u0 = prob.space.init(prob.params0)
+    terr, keys = prob.train_batch(0, a.batch)
+    res = dict(config=a.config, batch=a.batch, overrides=overrides, solver_grad=cfg.solver_grad,
+               device=str(jax.devices()[0].device_kind), jax=jax.__version__, date=time.strftime("%Y-%m-%d"),
+               programs=[])
+    def rollout_fn(grad):
+        if a.duration is None and a.settle is None:
+            return prob.train_rollout(grad=grad)
+        window = max(1, int(round(cfg.window / prob.train_ctrl.dt)))
+        rc = RolloutConfig(grad_clip=cfg.grad_clip, grad_window=window, remat=True,
+                           solver_grad=cfg.solver_grad) if grad else RolloutConfig()
+        if a.settle is not None:
+            rc = dataclasses.replace(rc, settle_time=a.settle)
+        return rollout_function(prob.robot, prob.train_ctrl, a.duration or prob.duration, physics=prob.physics(),
+                                config=rc)
+
+    if a.only in ("forward", "both"):
+        model, fn = rollout_fn(False)
+        res["programs"].append(profile(jax.jit(prob.loss_fn(fn, model)), (u0, terr, keys), "forward"))
+    if a.only in ("grad", "both"):
+        model, fn = rollout_fn(True)
+        vg = jax.jit(jax.value_and_grad(prob.loss_fn(fn, model), has_aux=True))
+        res["programs"].append(profile(vg, (u0, terr, keys), "value_and_grad"))
+    for p in res["programs"]:
+        print(f"\n== {p['label']}: wall {p['wall_s']:.3f} s, kernels {p['kernel_s']:.3f} s over {p['kernels']} ops, "
+              f"compile {p['compile_s']:.1f} s; phases " + ", ".join(f"{k} {v:.3f} s" for k, v in p["phases"].items()))
+        for s in p["stages"][:25]:
+            print(f"  {s['phase']:<10} {s['stage']:<34} {s['s']:8.4f} s {100 * s['share']:5.1f} %")
+        print("  top ops:")
+        for t in p["top_ops"][:15]:
+            print(f"   {t['s']:8.5f} s {t['phase']:<9} {t['stage']:<24} {t['op']:<32} {t['op_name'][-70:]}")
+    if a.json:
+        with open(a.json, "w") as f:
+            json.dump(res, f, indent=1)
+
+
+if __name__ == "__main__":
+    main()
