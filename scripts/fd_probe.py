@@ -21,10 +21,9 @@ import numpy as np
 
 from hexjax.control.cpg import CPGController
 from hexjax.control.gait import GaitController
-from hexjax.control.tactile import TactileGaitController
 from hexjax.sim.config import RolloutConfig, physics_for
 from hexjax.sim.rollout import rollout_function
-from hexjax.tune.gradcheck import check, travel_objective
+from hexjax.tune.gradcheck import check, tactile_check_setting, travel_objective
 from hexjax.tune.space import Bound, ParamSpace, make_space
 from hexjax.world.presets import get_robot, get_terrain
 from hexjax.world.terrain import sample
@@ -57,9 +56,7 @@ if a.ctrl.startswith("cpg"):
     space = make_space("cpg", only=a.fields.split(",") if a.fields else None)
     groups = {n: [n] for n in space.names}
 elif a.ctrl == "tactile":  # the setting of tests/test_tune.py
-    ctrl = TactileGaitController(robot, gait="tripod", smooth=True)
-    p = ctrl.default_params().replace(swing_time=jnp.float32(0.2), tactile_threshold=jnp.float32(0.1),
-                                      temperature=jnp.float32(0.1))
+    ctrl, p = tactile_check_setting(robot)
     space = make_space("tactile")
     groups = {"gait": ["step_length", "step_height", "swing_time"],
               "overcoming": ["overcome_length", "overcome_height"], "threshold": ["tactile_threshold"]}

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import collections
-import dataclasses
 import glob
 import gzip
 import json
@@ -34,8 +33,6 @@ import time
 import jax
 import numpy as np
 
-from hexjax.sim.config import RolloutConfig
-from hexjax.sim.rollout import rollout_function
 from hexjax.tune.config import load_tune_config
 from hexjax.tune.objective import Problem
 
@@ -100,8 +97,9 @@ def profile(fn, args, label: str) -> dict:
     t0 = time.perf_counter()
     jax.block_until_ready(compiled(*args))
     wall = time.perf_counter() - t0
-    meta = _metadata(compiled.as_text())
-    module = re.search(r"HloModule\s+([\w.\-]+)", compiled.as_text()).group(1)
+    text = compiled.as_text()
+    meta = _metadata(text)
+    module = re.search(r"HloModule\s+([\w.\-]+)", text).group(1)
     with tempfile.TemporaryDirectory() as tmp:
         with jax.profiler.trace(tmp, create_perfetto_trace=True):
             jax.block_until_ready(compiled(*args))
@@ -150,15 +148,7 @@ def main():
                device=str(jax.devices()[0].device_kind), jax=jax.__version__, date=time.strftime("%Y-%m-%d"),
                programs=[])
     def rollout_fn(grad):
-        if a.duration is None and a.settle is None:
-            return prob.train_rollout(grad=grad)
-        window = max(1, int(round(cfg.window / prob.train_ctrl.dt)))
-        rc = RolloutConfig(grad_clip=cfg.grad_clip, grad_window=window, remat=True,
-                           solver_grad=cfg.solver_grad) if grad else RolloutConfig()
-        if a.settle is not None:
-            rc = dataclasses.replace(rc, settle_time=a.settle)
-        return rollout_function(prob.robot, prob.train_ctrl, a.duration or prob.duration, physics=prob.physics(),
-                                config=rc)
+        return prob.train_rollout(grad=grad, duration=a.duration, settle_time=a.settle)
 
     if a.only in ("forward", "both"):
         model, fn = rollout_fn(False)

@@ -127,18 +127,15 @@ def test_rollout_gradient_unchanged_by_stopping_derived_fields(monkeypatch):
     from jax.flatten_util import ravel_pytree
 
     import hexjax.cache
-    from hexjax.control.tactile import TactileGaitController
     from hexjax.sim import rollout as rollout_mod
     from hexjax.sim import step as step_mod
-    from hexjax.tune.gradcheck import travel_objective
+    from hexjax.tune.gradcheck import tactile_check_setting, travel_objective
     from hexjax.tune.space import make_space
     from hexjax.world.presets import get_terrain
     from hexjax.world.terrain import sample
 
     robot = luneckas2020()
-    ctrl = TactileGaitController(robot, gait="tripod", smooth=True)
-    p = ctrl.default_params().replace(swing_time=jnp.float32(0.2), tactile_threshold=jnp.float32(0.1),
-                                      temperature=jnp.float32(0.1))
+    ctrl, p = tactile_check_setting(robot)
     space = make_space("tactile")
     spec = get_terrain("high-small")
     terr = sample(spec, jax.random.PRNGKey(0), 2)
@@ -157,8 +154,7 @@ def test_rollout_gradient_unchanged_by_stopping_derived_fields(monkeypatch):
     identity = lambda d: d  # noqa: E731
     monkeypatch.setattr(step_mod, "stop_derived", identity)
     monkeypatch.setattr(rollout_mod, "stop_derived", identity)
-    rollout_mod._compiled.cache_clear()
     full = grad()
-    rollout_mod._compiled.cache_clear()
+    rollout_mod._compiled.cache_clear()  # later tests must not get the patched program
     assert np.all(np.isfinite(full)) and np.abs(full).max() > 1e-4
     np.testing.assert_allclose(cut, full, rtol=1e-4, atol=1e-5 * np.abs(full).max())

@@ -11,7 +11,6 @@ import numpy as np
 import pytest
 
 from hexjax.control.cpg import CPGController
-from hexjax.control.tactile import TactileGaitController
 from hexjax.sim.compiled import Compiled, arrays_digest
 from hexjax.sim.config import RolloutConfig, physics_for
 from hexjax.sim.rollout import rollout_function
@@ -19,7 +18,7 @@ from hexjax.sim.step import Summary
 from hexjax.tune.config import TuneConfig
 from hexjax.tune.es import tune_es
 from hexjax.tune.grad import tune
-from hexjax.tune.gradcheck import check, travel_objective
+from hexjax.tune.gradcheck import check, tactile_check_setting, travel_objective
 from hexjax.tune.objective import per_env_objective
 from hexjax.tune.space import make_space
 from hexjax.world.presets import get_terrain, luneckas2020, yu2019
@@ -45,11 +44,8 @@ def test_gradient_matches_central_differences_per_group():
     ground, MJX's default two Newton iterations traced as a scan), the autodiff gradient with respect to
     the unconstrained params has cosine >= 0.9 with central differences, for every parameter group."""
     robot = luneckas2020()
-    ctrl = TactileGaitController(robot, gait="tripod", smooth=True)
-    # a fast gait (0.2 s swing slots) and a threshold inside the gate's width, so that one 0.4 s window
-    # holds a lift-off where every group (basic step, overcoming step, threshold) acts
-    p = ctrl.default_params().replace(swing_time=jnp.float32(0.2), tactile_threshold=jnp.float32(0.1),
-                                      temperature=jnp.float32(0.1))
+    # a fast gait and a threshold inside the gate's width: every group acts within the 0.4 s window
+    ctrl, p = tactile_check_setting(robot)
     space = make_space("tactile")
     spec = get_terrain("flat")
     terr = sample(spec, jax.random.PRNGKey(0), 4)

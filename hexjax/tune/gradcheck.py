@@ -8,7 +8,18 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from hexjax.control.tactile import TactileGaitController
 from hexjax.sim.compiled import Compiled
+
+
+def tactile_check_setting(robot):
+    """(controller, params) of the tactile gradient check (tests/test_tune.py, tests/test_implicit.py,
+    scripts/fd_probe.py): the smooth Luneckas 2020 tactile tripod with a fast gait (0.2 s swing slots) and a pad
+    threshold inside the gate's width, so that one 0.4 s window holds a lift-off where every group (basic step,
+    overcoming step, threshold) acts."""
+    ctrl = TactileGaitController(robot, gait="tripod", smooth=True)
+    return ctrl, ctrl.default_params().replace(swing_time=jnp.float32(0.2), tactile_threshold=jnp.float32(0.1),
+                                               temperature=jnp.float32(0.1))
 
 
 def central_differences(f: Callable, u0: Mapping[str, jax.Array], eps: float) -> Dict[str, np.ndarray]:

@@ -125,13 +125,17 @@ class Problem:
         n = self.cfg.held_out_batch if which == "held_out" else self.cfg.validation_batch
         return self.terrain_batch(k_e, n), jax.random.split(jax.random.fold_in(k_e, 1), n)
 
-    def train_rollout(self, grad: bool, params_batched: bool = False):
-        """(model, fn) of the smooth rollout; `grad` adds the truncation, bound and remat."""
+    def train_rollout(self, grad: bool, params_batched: bool = False, duration: Optional[float] = None,
+                      settle_time: Optional[float] = None):
+        """(model, fn) of the smooth rollout; `grad` adds the truncation, bound and remat. `duration`,
+        `settle_time` (s): instead of the config's walk and RolloutConfig's settling (scripts/profile_grad.py)."""
         window = max(1, int(round(self.cfg.window / self.train_ctrl.dt)))
         rc = RolloutConfig(grad_clip=self.cfg.grad_clip, grad_window=window, remat=True,
                            solver_grad=self.cfg.solver_grad) if grad else RolloutConfig()
-        return rollout_function(self.robot, self.train_ctrl, self.duration, physics=self.physics(),
-                                config=rc, params_batched=params_batched)
+        if settle_time is not None:
+            rc = dataclasses.replace(rc, settle_time=settle_time)
+        return rollout_function(self.robot, self.train_ctrl, self.duration if duration is None else duration,
+                                physics=self.physics(), config=rc, params_batched=params_batched)
 
     def hard_rollout(self, params_batched: bool = False):
         """(model, fn) of the hard form as a pure jitted function (for CMA-ES on the evaluated objective,
