@@ -2,9 +2,10 @@
 
 Profiles one call of the smooth forward objective and one of its `jax.value_and_grad` (the programs
 `hexjax bench --grad` times) with the JAX profiler, and attributes every kernel's time to
-- a phase: `backward` for ops inside the transposed program, which with remat includes the recomputation of
-  each control step's forward (`rematted_computation` in the op name), `forward` for the rest, read from the
-  JAX op name XLA keeps in each instruction's metadata, and
+- a phase: `forward`, `recompute` (with remat, each control step's forward run again inside the backward
+  pass: `rematted_computation` in the op name) or `transpose` (the rest of the backward pass), read from the
+  JAX op name XLA keeps in each instruction's metadata, or for an instruction without one (copies, layout
+  transposes, stacking) from the loop or fusion that runs it, and
 - a stage: the named scopes in the op's name: MJX's (`fwd_position`: kinematics, collision, constraints;
   `fwd_velocity`, `fwd_actuation`, `fwd_acceleration`, `solve`, `euler`) and hexjax's (`hx.*`: the controller,
   the implicit backward's pieces, ...).
@@ -44,14 +45,36 @@ _CONTAINERS = ("while", "conditional", "call")  # CPU thunks that contain other 
 
 
 def _metadata(hlo_text: str) -> dict:
-    """instruction name -> JAX op name (the named-scope path) from an optimised HLO module's text."""
-    out = {}
+    """instruction name -> JAX op name (the named-scope path) from an optimised HLO module's text. An instruction
+    XLA made without one (layout copies, the stacking of a loop's outputs) takes the op name of the nearest
+    instruction that calls its computation (a while loop, a fusion), so it is counted in that loop's phase."""
+    own, comp_of, caller = {}, {}, {}
+    comp = None
     for line in hlo_text.splitlines():
+        if line and not line[0].isspace() and line.rstrip().endswith("{"):
+            head = re.match(r"^(?:ENTRY\s+)?%?([\w.\-]+)", line)
+            comp = head.group(1) if head else None
+            continue
         m = _META.match(line)
         if m:
+            name = m.group(1)
             op = re.search(r'op_name="([^"]*)"', m.group(2))
-            out[m.group(1)] = op.group(1) if op else ""
-    return out
+            own[name], comp_of[name] = (op.group(1) if op else ""), comp
+        ins = re.match(r"^\s*(?:ROOT\s+)?%?([\w.\-]+)\s*=", line)
+        if ins and comp:
+            comp_of.setdefault(ins.group(1), comp)
+            for callee in re.findall(r"(?:body|condition|calls|to_apply|true_computation|false_computation|"
+                                     r"branch_computations)=\{?(%[\w.\-]+(?:,\s*%[\w.\-]+)*)", line):
+                for c in callee.split(","):
+                    caller.setdefault(c.strip().lstrip("%"), ins.group(1))
+
+    def resolve(name, depth=0):
+        if own.get(name) or depth > 32:
+            return own.get(name, "")
+        up = caller.get(comp_of.get(name))
+        return resolve(up, depth + 1) if up else ""
+
+    return {name: resolve(name) for name in comp_of}
 
 
 def _stage(op_name: str) -> str:
@@ -61,8 +84,12 @@ def _stage(op_name: str) -> str:
 
 
 def _phase(op_name: str) -> str:
-    """'backward' for ops inside the transposed program (with remat, the recomputation too); 'forward' otherwise."""
-    return "backward" if "transpose(" in op_name else "forward"
+    """Of a gradient program: 'recompute' for a rematerialised control step's forward inside the backward
+    pass, 'transpose' for the rest of the backward pass, 'forward' for the forward pass (and all of a forward
+    program)."""
+    if "transpose(" not in op_name:
+        return "forward"
+    return "recompute" if "rematted_computation" in op_name else "transpose"
 
 
 def _kernel_times(trace_dir: str, module: str) -> tuple[dict, float]:
@@ -89,7 +116,7 @@ def _kernel_times(trace_dir: str, module: str) -> tuple[dict, float]:
     return times, (t_hi - t_lo) * 1e-6 if times else 0.0
 
 
-def profile(fn, args, label: str) -> dict:
+def profile(fn, args, label: str, top_n: int = 40, hlo_dir: str = None) -> dict:
     t0 = time.perf_counter()
     compiled = fn.lower(*args).compile()
     compile_s = time.perf_counter() - t0
@@ -98,6 +125,10 @@ def profile(fn, args, label: str) -> dict:
     jax.block_until_ready(compiled(*args))
     wall = time.perf_counter() - t0
     text = compiled.as_text()
+    if hlo_dir:  # the optimised HLO, to read unscoped ops (copies, transposes) in their computations
+        os.makedirs(hlo_dir, exist_ok=True)
+        with gzip.open(os.path.join(hlo_dir, f"{label}.hlo.txt.gz"), "wt") as f:
+            f.write(text)
     meta = _metadata(text)
     module = re.search(r"HloModule\s+([\w.\-]+)", text).group(1)
     with tempfile.TemporaryDirectory() as tmp:
@@ -120,7 +151,7 @@ def profile(fn, args, label: str) -> dict:
                 phases={k: round(v * 1e-6, 4) for k, v in by_phase.most_common()},
                 stages=[dict(phase=k[0], stage=k[1], s=round(v * 1e-6, 4), share=round(v / max(total, 1e-9), 4))
                         for k, v in by.most_common()],
-                top_ops=[dict(s=round(u * 1e-6, 5), op=o, phase=p, stage=s, op_name=n) for u, o, p, s, n in top[:40]])
+                top_ops=[dict(s=round(u * 1e-6, 5), op=o, phase=p, stage=s, op_name=n) for u, o, p, s, n in top[:top_n]])
 
 
 def main():
@@ -135,6 +166,8 @@ def main():
                     help="s walked, instead of the config's (a short one keeps the trace small)")
     ap.add_argument("--settle", type=float, default=None, help="s of settling, instead of RolloutConfig's")
     ap.add_argument("--json", default=None)
+    ap.add_argument("--top", type=int, default=40, help="ops listed per program in the JSON")
+    ap.add_argument("--hlo-dir", default=None, help="write each program's optimised HLO text here (gzip)")
     a = ap.parse_args()
     import yaml
     overrides = {k: yaml.safe_load(v) for k, v in (s.split("=", 1) for s in a.set)}
@@ -152,11 +185,11 @@ def main():
 
     if a.only in ("forward", "both"):
         model, fn = rollout_fn(False)
-        res["programs"].append(profile(jax.jit(prob.loss_fn(fn, model)), (u0, terr, keys), "forward"))
+        res["programs"].append(profile(jax.jit(prob.loss_fn(fn, model)), (u0, terr, keys), "forward", a.top, a.hlo_dir))
     if a.only in ("grad", "both"):
         model, fn = rollout_fn(True)
         vg = jax.jit(jax.value_and_grad(prob.loss_fn(fn, model), has_aux=True))
-        res["programs"].append(profile(vg, (u0, terr, keys), "value_and_grad"))
+        res["programs"].append(profile(vg, (u0, terr, keys), "value_and_grad", a.top, a.hlo_dir))
     for p in res["programs"]:
         print(f"\n== {p['label']}: wall {p['wall_s']:.3f} s, kernels {p['kernel_s']:.3f} s over {p['kernels']} ops, "
               f"compile {p['compile_s']:.1f} s; phases " + ", ".join(f"{k} {v:.3f} s" for k, v in p["phases"].items()))

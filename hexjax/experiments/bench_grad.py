@@ -45,15 +45,17 @@ def _time(fn, args, repeats: int):
 
 
 def bench_grad(tune: str = "tactile_tripod", batches: Sequence[int] = (64,),
-               solver_grads: Sequence[str] = GRAD_SOLVERS, repeats: int = 2, progress: bool = True) -> dict:
-    """Rows per batch: forward, then value_and_grad for each of `solver_grads` (see the module docstring)."""
+               solver_grads: Sequence[str] = GRAD_SOLVERS, repeats: int = 2, progress: bool = True,
+               unroll_substeps: bool = False) -> dict:
+    """Rows per batch: forward, then value_and_grad for each of `solver_grads` (see the module docstring);
+    `unroll_substeps`: the gradient rollouts' `RolloutConfig.unroll_substeps`."""
     bad = [s for s in solver_grads if s not in GRAD_SOLVERS]
     if bad or not solver_grads:
         raise ValueError(f"solver_grad={list(solver_grads)!r}: a comma list of {GRAD_SOLVERS}")
     for b in batches:
         if not isinstance(b, int) or b < 1:
             raise ValueError(f"batches entry {b!r}: must be an integer >= 1")
-    cfg = load_tune_config(tune)
+    cfg = load_tune_config(tune, {"unroll_substeps": unroll_substeps} if unroll_substeps else None)
     problems = {s: Problem.build(dataclasses.replace(cfg, solver_grad=s)) for s in solver_grads}
     base = problems[solver_grads[0]]
     ctrl_dt = base.train_ctrl.dt
@@ -91,6 +93,7 @@ def bench_grad(tune: str = "tactile_tripod", batches: Sequence[int] = (64,),
                        + (f", {100 * row['rate_vs_forward']:.1f} % of forward" if "rate_vs_forward" in row else ""))
     dev = jax.devices()[0]
     return dict(kind="grad", tune=tune, controller=cfg.controller, terrain=cfg.terrain, window_s=cfg.window,
+                unroll_substeps=cfg.unroll_substeps,
                 duration_s=base.duration, physics_steps_per_env=n_phys,
                 solver_iterations=base.physics().iterations, backend=jax.default_backend(),
                 device=f"{dev.platform}:{getattr(dev, 'device_kind', '')}", host=platform.node(),
@@ -100,7 +103,8 @@ def bench_grad(tune: str = "tactile_tripod", batches: Sequence[int] = (64,),
 def format_bench_grad(res: dict) -> str:
     lines = [f"{res['device']} ({res['backend']}): value_and_grad of the {res['tune']} objective against its forward "
              f"({res['duration_s']:.2f} s walk, {res['physics_steps_per_env']} physics steps per env, "
-             f"{res['window_s']} s windows, {res['solver_iterations']} Newton iterations)",
+             f"{res['window_s']} s windows, {res['solver_iterations']} Newton iterations"
+             + (", physics steps unrolled)" if res.get("unroll_substeps") else ")"),
              f"{'batch':>6} {'mode':<15} {'compile s':>9} {'x fwd':>6} {'env-steps/s':>12} {'% of fwd':>8} "
              f"{'loss':>9} {'|grad|':>9} {'nonfinite':>9}"]
     for r in res["rows"]:

@@ -73,6 +73,12 @@ class RolloutConfig:
     # Recompute each control step in the backward pass instead of storing its internals (jax.checkpoint):
     # memory per env and step drops from every substep's solver residuals to one mjx.Data.
     remat: bool = False
+    # Trace a control step's physics steps one after another instead of as a loop (values equal to float32
+    # rounding: XLA fuses them differently). In reverse mode with `remat`, the loop stacks hundreds of small
+    # residual arrays per physics step for the transpose; unrolled, value_and_grad of the tuning objective runs
+    # 28 % faster on an H100 (B = 4,096), and XLA takes 2.1x as long to compile it (docs/benchmarks.md,
+    # 2026-11-25, fourth session).
+    unroll_substeps: bool = False
     # How reverse mode goes through MJX's constraint solve (forward values are the same for all three):
     #   'none'      MJX's lax.while_loop, which JAX cannot reverse: gradients need physics.iterations == 1
     #               (one unconverged Newton step makes the rollout non-smooth in the params: central
@@ -92,6 +98,8 @@ class RolloutConfig:
             raise ValueError(f"rollout.solver_grad={self.solver_grad!r}: use one of {SOLVER_GRADS}")
         if not (isinstance(self.grad_window, int) and self.grad_window >= 0):
             raise ValueError(f"rollout.grad_window={self.grad_window!r}: must be an integer >= 0")
+        if not isinstance(self.unroll_substeps, bool):
+            raise ValueError(f"rollout.unroll_substeps={self.unroll_substeps!r}: must be True or False")
         if not (isinstance(self.progress_every, int) and self.progress_every >= 0):
             raise ValueError(f"rollout.progress_every={self.progress_every!r}: must be an integer >= 0")
         if self.settle_time < 0:

@@ -14,14 +14,12 @@ iteration already factors. The implicit function theorem gives
 
     d a* / d theta = -H^{-1} dg/dtheta      (active set held fixed).
 
-`implicit_solve` computes this without a custom VJP:
-
-    a = a_solved + delta - stop_gradient(delta),    delta = -H_sg^{-1} g(stop_gradient(a_solved), theta)
-
-with H_sg the Hessian at the solution with its gradient stopped. In value `a` is MJX's own result, bit for bit
-(the solve runs as MJX runs it: a while loop that stops once converged, cut from the gradient); in reverse mode
-the cotangent goes through one Cholesky solve and one evaluation of g, whatever the number of iterations.
-Constraint forces are recomputed from `a` the same way.
+`implicit_solve` runs MJX's solve as MJX runs it (a while loop that stops once converged), cut from the gradient,
+so in value its outputs are MJX's, bit for bit. A custom VJP (`_attach`) then hands their cotangents to
+everything the solve read, by one linearisation of MJX's own constraint update at the solution and one Cholesky
+solve with H (`_cotangent`), whatever the number of iterations. Written as a custom VJP rather than as
+`a* + delta - stop_gradient(delta)` (the first version), the forward pass computes nothing for the derivative,
+and the backward pass keeps only the arrays whose values it reads: the mass matrix and the constraint rows.
 
 The derivative is that of the exact minimiser. When the solver stops before converging (`physics.iterations`
 too small for the contacts), the forward value is an approximation and its implicit derivative belongs to the
@@ -34,6 +32,8 @@ from __future__ import annotations
 import contextlib
 
 import jax
+import jax.numpy as jnp
+import numpy as np
 from jax.ad_checkpoint import checkpoint_name
 from mujoco.mjx._src import solver, support
 from mujoco.mjx._src.types import ConeType
@@ -50,43 +50,119 @@ def _stop(tree):
     return jax.tree_util.tree_map(lambda x: jax.lax.stop_gradient(x) if isinstance(x, jax.Array) else x, tree)
 
 
+def _cotangent(m, d, a_star, cts, rebuild, xf):
+    """Cotangent of the float leaves xf of (m, d) (`rebuild(xf)` gives them back) from cotangents
+    cts = (of qacc, of qfrc_constraint, of efc_force) of the solve's outputs at its solution a_star.
+
+    The outputs as functions of theta: qacc(theta) is the minimiser (module docstring), and the forces are MJX's
+    constraint update at it, C(qacc(theta), theta). With one linearisation of F(a, theta) = (M a - qfrc_smooth,
+    C(a, theta)) at (a_star, theta), and g = F_1 - C_qfrc:
+      1. the forces' cotangents reach a and theta directly: (a1, t1) = F^T (0, cts_qfrc, cts_efc);
+      2. qacc's whole cotangent, cts_qacc + a1, goes through the minimiser: u = H^{-1} (cts_qacc + a1) and
+         t2 = -(dg/dtheta)^T u = F^T (-u, u, 0) on theta;
+    the answer is t1 + t2, with H = M + J^T diag(D active) J at a_star (H is symmetric)."""
+    ca, cf, ce = cts
+
+    def f(a, xf_):
+        m_, d_ = rebuild(xf_)
+        with jax.named_scope("hx.implicit_residual"):
+            c = solver.Context.create(m_, d_.replace(qacc=a), grad=False)
+            return (c.Ma - d_.qfrc_smooth, c.qfrc_constraint, c.efc_force), c.active
+
+    (f1, _, efc), f_vjp, active = jax.vjp(f, a_star, xf, has_aux=True)
+    a1, t1 = f_vjp((jnp.zeros_like(f1), cf, ce))
+    with jax.named_scope("hx.implicit_hessian"):
+        j, dd = d._impl.efc_J, d._impl.efc_D
+        h = support.full_m(m, d) + (j.T * (dd * active)) @ j
+        u = jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(0.5 * (h + h.T)), ca + a1)
+    _, t2 = f_vjp((-u, u, jnp.zeros_like(efc)))
+    return jax.tree_util.tree_map(jnp.add, t1, t2)
+
+
+def _floats(xs) -> list:
+    """Indices of the float arrays in xs."""
+    return [k for k, x in enumerate(xs) if jnp.issubdtype(x.dtype, jnp.inexact)]
+
+
+def _put(xs, idx, vals) -> list:
+    """A copy of the list xs with xs[idx[j]] = vals[j]."""
+    ys = list(xs)
+    for k, v in zip(idx, vals):
+        ys[k] = v
+    return ys
+
+
+def _read_by_backward(m, d, a_star, rebuild, traced) -> list:
+    """For each leaf index in `traced`, whether `_cotangent` reads it: only those are kept for the backward
+    pass (the others, most of mjx.Data, would be stored for every physics step for nothing). Found by tracing
+    `_cotangent` once and removing dead code from its jaxpr; all, if JAX's internals for that have moved."""
+    def backward(a, cts, *xs):
+        fl = _floats(xs)
+        rebuild_f = lambda xf_: rebuild(_put(xs, fl, xf_))  # noqa: E731
+        return _cotangent(*rebuild(xs), a, cts, rebuild_f, [xs[i] for i in fl])
+    try:
+        from jax._src.interpreters import partial_eval as pe
+        shape = lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype)  # noqa: E731
+        cts = (shape(a_star), shape(d.qfrc_constraint), shape(d._impl.efc_force))
+        closed = jax.make_jaxpr(backward)(shape(a_star), cts, *map(shape, traced))
+        _, used = pe.dce_jaxpr(closed.jaxpr, [True] * len(closed.jaxpr.outvars))
+        return list(used[4:])  # after a and the three cotangents
+    except (ImportError, AttributeError, TypeError):
+        return [True] * len(traced)
+
+
+def _attach(m, d, a_star, frc, efc):
+    """(a_star, frc, efc), MJX's solution, unchanged in value; in reverse mode their cotangents go to the float
+    arrays of (m, d) by the implicit function theorem (`_cotangent`). A custom VJP, so that the forward pass
+    computes nothing for the derivative (the backward pass builds the Hessian and the constraint update from
+    the control step's recomputed inputs), and it keeps for the backward pass only the arrays whose values
+    `_cotangent` reads (the mass matrix and the constraint rows); the others get their cotangents all the same."""
+    leaves, treedef = jax.tree_util.tree_flatten((m, d))
+    traced = [i for i, x in enumerate(leaves) if isinstance(x, jax.Array)]
+
+    def rebuild(xs):
+        return jax.tree_util.tree_unflatten(treedef, _put(leaves, traced, xs))
+
+    xs = [leaves[i] for i in traced]
+    read = [k for k, u in enumerate(_read_by_backward(m, d, a_star, rebuild, xs)) if u]
+    fl = _floats(xs)
+    ints = sorted(set(range(len(xs))) - set(fl))
+
+    @jax.custom_vjp
+    def attach(xf, xi, a, f, e):
+        return a, f, e
+
+    def fwd(xf, xi, a, f, e):
+        ys = dict(zip(fl, xf)) | dict(zip(ints, xi))
+        return (a, f, e), ([ys[k] for k in read], a)
+
+    def bwd(res, cts):
+        saved, a = res
+        # the leaves not saved are zeros of their shape: the backward pass does not read their values
+        ys = _put([jnp.zeros(x.shape, x.dtype) for x in xs], read, saved)
+        rebuild_f = lambda xf_: rebuild(_put(ys, fl, xf_))  # noqa: E731
+        xf = [ys[k] for k in fl]
+        gf = _cotangent(*rebuild_f(xf), a, cts, rebuild_f, xf)
+        zero_int = [np.zeros(xs[k].shape, jax.dtypes.float0) for k in ints]
+        return (gf, zero_int) + tuple(jnp.zeros_like(x) for x in (a, *cts[1:]))
+
+    attach.defvjp(fwd, bwd)
+    return attach([xs[k] for k in fl], [xs[k] for k in ints], a_star, frc, efc)
+
+
 def implicit_solve(m, d):
     """MJX's `solver.solve(m, d)` in value; its derivative by the implicit function theorem (module docstring).
     Pyramidal cone only (hexjax's physics; `PhysicsConfig.cone`)."""
     if m.opt.cone != ConeType.PYRAMIDAL:
         raise ValueError("RolloutConfig.solver_grad='implicit' supports the pyramidal friction cone only")
-    m_sg, d_sg = _stop(m), _stop(d)
     with jax.named_scope("hx.solve_mjx"):  # scopes name the pieces in profiles (scripts/profile_grad.py)
-        out = _MJX_SOLVE(m_sg, d_sg)
+        out = _MJX_SOLVE(_stop(m), _stop(d))
     # named, so that a rematerialised step (`RolloutConfig.remat`, policy `REMAT_POLICY`) keeps the solution
     # and does not run the solver's iterations again in the backward pass
     a_star, frc, efc = (checkpoint_name(x, SOLUTION) for x in (out.qacc, out.qfrc_constraint, out._impl.efc_force))
-
-    # H at the solution, cut from the gradient: M + J^T diag(D * active) J, factored once
-    with jax.named_scope("hx.implicit_hessian"):
-        ctx = solver.Context.create(m_sg, d_sg.replace(qacc=a_star), grad=False)
-        j, dd = d_sg._impl.efc_J, d_sg._impl.efc_D
-        h = support.full_m(m_sg, d_sg) + (j.T * (dd * ctx.active)) @ j
-        h = 0.5 * (h + h.T)
-        chol = jax.scipy.linalg.cho_factor(h)
-
-    # g(a*, theta) with theta live: MJX's own constraint update, so every constraint kind is handled alike
-    def residual(qacc):
-        with jax.named_scope("hx.implicit_residual"):
-            c = solver.Context.create(m, d.replace(qacc=qacc), grad=False)
-            return c.Ma - d.qfrc_smooth - c.qfrc_constraint, c
-
-    g, _ = residual(a_star)
-    delta = -jax.scipy.linalg.cho_solve(chol, g)
-    qacc = a_star + (delta - jax.lax.stop_gradient(delta))
-    _, c = residual(qacc)  # forces at the differentiable acceleration (active set of a*: same as at qacc)
-    live = lambda solved, x: solved + (x - jax.lax.stop_gradient(x))
+    qacc, frc, efc = _attach(m, d, a_star, frc, efc)
     # every other field from the live `d`: `out` was made from the stopped copy
-    return d.tree_replace({
-        "qacc": qacc,
-        "qfrc_constraint": live(frc, c.qfrc_constraint),
-        "_impl.efc_force": live(efc, c.efc_force),
-    })
+    return d.tree_replace({"qacc": qacc, "qfrc_constraint": frc, "_impl.efc_force": efc})
 
 
 @contextlib.contextmanager

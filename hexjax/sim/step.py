@@ -185,15 +185,16 @@ def env_view(sm: SimModel, sensors: SensorConfig, terrain: Terrain, d, base=None
     return m, d, read_obs(sm, sensors, m, d)
 
 
-def physics(m, d, n_sub: int, stop: bool = False):
+def physics(m, d, n_sub: int, stop: bool = False, unroll: bool = False):
     """`n_sub` mjx.step calls: (data after them, actuator power |torque * joint rate| (n_sub,) W). `stop`: pass
-    gradient from step to step through `GRAD_FIELDS` only (`stop_derived`; MJX-JAX Data)."""
+    gradient from step to step through `GRAD_FIELDS` only (`stop_derived`; MJX-JAX Data). `unroll`: trace the
+    steps one after another instead of as a loop (`RolloutConfig.unroll_substeps`)."""
     def sub(dd, _):
         dd = mjx.step(m, dd)
         power = jnp.sum(jnp.abs(dd.actuator_force * dd.qvel[6:]))
         return (stop_derived(dd) if stop else dd), power
 
-    return jax.lax.scan(sub, d, None, length=n_sub)
+    return jax.lax.scan(sub, d, None, length=n_sub, unroll=unroll)
 
 
 def keep_finite(d_new, d, warp: bool = False):
@@ -285,7 +286,7 @@ def make_control_step(sm: SimModel, sensors: SensorConfig, cfg: RolloutConfig, c
         if cfg.grad_clip is not None:  # the physics' gradient reaches the controller through the action
             action = clip_cotangent(action, cfg.grad_clip)
         d = d.replace(ctrl=action)
-        d_new, power = physics(m, d, n_sub, stop=sm.impl == "jax")
+        d_new, power = physics(m, d, n_sub, stop=sm.impl == "jax", unroll=cfg.unroll_substeps)
         d_new, finite = keep_finite(d_new, d, sm.impl == "warp")
         with jax.named_scope("hx.accumulate"):
             acc = accumulate(acc, cfg, i, n_settle, controller.dt, d.qpos, d_new.qpos, finite, jnp.sum(power) * dt,

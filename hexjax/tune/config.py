@@ -42,6 +42,9 @@ class TuneConfig:
     # how the gradient goes through MJX's constraint solve (`RolloutConfig.solver_grad`): 'unrolled'
     # differentiates every Newton iteration, 'implicit' one linear solve at the solution (docs/tuning.md)
     solver_grad: str = "unrolled"
+    # the training rollout's `RolloutConfig.unroll_substeps`: each control step's physics steps traced one after
+    # another; the gradient runs faster on a GPU (+28 % on an H100) and compiles about twice as long
+    unroll_substeps: bool = False
     # the gradient estimator of `hexjax.tune.grad` (docs/tuning.md, "The hybrid estimator"): 'first_order'
     # is the windowed pathwise gradient; 'hybrid' fits the whole walk's directional derivatives along
     # `zo_pairs` antithetic perturbations per training terrain (N(0, zo_sigma^2) on the unconstrained scale),
@@ -105,6 +108,8 @@ class TuneConfig:
             raise ValueError(f"tune.solver_iterations={it!r}: must be None or an integer in [1, 32]")
         if self.solver_grad not in GRAD_SOLVERS:
             raise ValueError(f"tune.solver_grad={self.solver_grad!r}: use one of {GRAD_SOLVERS}")
+        if not isinstance(self.unroll_substeps, bool):
+            raise ValueError(f"tune.unroll_substeps={self.unroll_substeps!r}: must be true or false")
         for f in ("distance", "horizon", "window", "grad_clip", "temperature", "es_sigma", "zo_sigma", "zo_prior"):
             v = getattr(self, f)
             if f == "temperature" and v is None:

@@ -43,6 +43,8 @@ def config_digest(cfg: TuneConfig, method: str) -> str:
         drop.append("terrain_overrides")
     if method == "grad" or cfg.es_objective == "smooth":
         drop.append("es_objective")
+    if method != "grad" or not cfg.unroll_substeps:  # digests from before the key hold
+        drop.append("unroll_substeps")
     for k in drop:
         d.pop(k)
     return hashlib.sha256(json.dumps([method, d], sort_keys=True, default=str).encode()).hexdigest()[:16]

@@ -131,7 +131,8 @@ class Problem:
         `settle_time` (s): instead of the config's walk and RolloutConfig's settling (scripts/profile_grad.py)."""
         window = max(1, int(round(self.cfg.window / self.train_ctrl.dt)))
         rc = RolloutConfig(grad_clip=self.cfg.grad_clip, grad_window=window, remat=True,
-                           solver_grad=self.cfg.solver_grad) if grad else RolloutConfig()
+                           solver_grad=self.cfg.solver_grad, unroll_substeps=self.cfg.unroll_substeps) \
+            if grad else RolloutConfig()
         if settle_time is not None:
             rc = dataclasses.replace(rc, settle_time=settle_time)
         return rollout_function(self.robot, self.train_ctrl, self.duration if duration is None else duration,
