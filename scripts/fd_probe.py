@@ -15,7 +15,6 @@ import argparse
 import dataclasses
 import time
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -23,10 +22,9 @@ from hexjax.control.cpg import CPGController
 from hexjax.control.gait import GaitController
 from hexjax.sim.config import RolloutConfig, physics_for
 from hexjax.sim.rollout import rollout_function
-from hexjax.tune.gradcheck import check, tactile_check_setting, travel_objective
+from hexjax.tune.gradcheck import check, check_batch, tactile_check_setting, travel_objective
 from hexjax.tune.space import Bound, ParamSpace, make_space
 from hexjax.world.presets import get_robot, get_terrain
-from hexjax.world.terrain import sample
 
 ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
 ap.add_argument("--robot", default="yu2019", help="robot preset")
@@ -72,8 +70,7 @@ spec = get_terrain("flat")
 if a.face:
     spec = dataclasses.replace(get_terrain("step40"), height_range=(a.faceh, a.faceh), step_side="full",
                                start_x=a.face, length=0.004, step_length_range=(0.3, 0.3))
-terr = sample(spec, jax.random.PRNGKey(0), a.B)
-keys = jax.random.split(jax.random.PRNGKey(1), a.B)
+terr, keys = check_batch(spec, a.B)
 phys = dataclasses.replace(physics_for(spec.kind), iterations=a.iters)
 model, fn = rollout_function(robot, ctrl, a.window, physics=phys,
                              config=RolloutConfig(settle_time=a.settle, solver_grad="unrolled"))

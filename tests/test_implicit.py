@@ -129,17 +129,15 @@ def test_rollout_gradient_unchanged_by_stopping_derived_fields(monkeypatch):
     import hexjax.cache
     from hexjax.sim import rollout as rollout_mod
     from hexjax.sim import step as step_mod
-    from hexjax.tune.gradcheck import tactile_check_setting, travel_objective
+    from hexjax.tune.gradcheck import check_batch, tactile_check_setting, travel_objective
     from hexjax.tune.space import make_space
     from hexjax.world.presets import get_terrain
-    from hexjax.world.terrain import sample
 
     robot = luneckas2020()
     ctrl, p = tactile_check_setting(robot)
     space = make_space("tactile")
     spec = get_terrain("high-small")
-    terr = sample(spec, jax.random.PRNGKey(0), 2)
-    keys = jax.random.split(jax.random.PRNGKey(1), 2)
+    terr, keys = check_batch(spec, 2)
     rc = RolloutConfig(settle_time=0.1, solver_grad="implicit", grad_window=10, grad_clip=1.0, remat=True)
 
     def grad():

@@ -18,11 +18,10 @@ from hexjax.sim.step import Summary
 from hexjax.tune.config import TuneConfig
 from hexjax.tune.es import tune_es
 from hexjax.tune.grad import tune
-from hexjax.tune.gradcheck import check, tactile_check_setting, travel_objective
+from hexjax.tune.gradcheck import check, check_batch, tactile_check_setting, travel_objective
 from hexjax.tune.objective import per_env_objective
 from hexjax.tune.space import make_space
 from hexjax.world.presets import get_terrain, luneckas2020, yu2019
-from hexjax.world.terrain import sample
 
 # the tactile preset's parameter groups
 GROUPS = {"gait": ["step_length", "step_height", "swing_time"],
@@ -48,8 +47,7 @@ def test_gradient_matches_central_differences_per_group():
     ctrl, p = tactile_check_setting(robot)
     space = make_space("tactile")
     spec = get_terrain("flat")
-    terr = sample(spec, jax.random.PRNGKey(0), 4)
-    keys = jax.random.split(jax.random.PRNGKey(1), 4)
+    terr, keys = check_batch(spec, 4)
     phys, rc = physics_for(spec.kind), RolloutConfig(settle_time=0.1, solver_grad="unrolled")
     model, fn = rollout_function(robot, ctrl, 0.4, physics=phys, config=rc)
     static = (robot, ctrl, phys, rc, 0.4, space, arrays_digest(p, terr, keys))
@@ -75,8 +73,7 @@ def test_cpg_gradient_matches_central_differences():
                   temp_force=jnp.float32(3.0), f_contact=jnp.array([1.0, 1.0, 2.0]))
     space = make_space("cpg")
     spec = get_terrain("flat")
-    terr = sample(spec, jax.random.PRNGKey(0), 4)
-    keys = jax.random.split(jax.random.PRNGKey(1), 4)
+    terr, keys = check_batch(spec, 4)
     phys = dataclasses.replace(physics_for(spec.kind), iterations=4)
     rc = RolloutConfig(settle_time=0.1, solver_grad="unrolled")
     model, fn = rollout_function(robot, ctrl, 0.4, physics=phys, config=rc)

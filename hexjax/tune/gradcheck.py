@@ -10,6 +10,7 @@ import numpy as np
 
 from hexjax.control.tactile import TactileGaitController
 from hexjax.sim.compiled import Compiled
+from hexjax.world.terrain import sample
 
 
 def tactile_check_setting(robot):
@@ -20,6 +21,12 @@ def tactile_check_setting(robot):
     ctrl = TactileGaitController(robot, gait="tripod", smooth=True)
     return ctrl, ctrl.default_params().replace(swing_time=jnp.float32(0.2), tactile_threshold=jnp.float32(0.1),
                                                temperature=jnp.float32(0.1))
+
+
+def check_batch(spec, n: int):
+    """(terrains, env keys) of n envs on terrain spec `spec`, as the gradient checks draw them (tests/test_tune.py,
+    tests/test_implicit.py, scripts/fd_probe.py): terrains from PRNG key 0, env keys split from key 1."""
+    return sample(spec, jax.random.PRNGKey(0), n), jax.random.split(jax.random.PRNGKey(1), n)
 
 
 def central_differences(f: Callable, u0: Mapping[str, jax.Array], eps: float) -> Dict[str, np.ndarray]:
