@@ -44,6 +44,23 @@ def _time(fn, args, repeats: int):
     return compile_s, best, out
 
 
+def physics_steps(problem: Problem, duration: float | None = None) -> int:
+    """Physics steps of one env in `problem`'s training rollout (settling included); `duration`: instead of the
+    config's walk."""
+    ctrl_dt = problem.train_ctrl.dt
+    walk = problem.duration if duration is None else duration
+    return ((settle_steps(RolloutConfig(), ctrl_dt) + control_steps(walk, ctrl_dt))
+            * substeps(problem.physics(), ctrl_dt))
+
+
+def objective_program(problem: Problem, grad: bool, duration: float | None = None):
+    """The jitted program timed: the smooth training objective (u, terrain, keys) -> (mean J, per-env J), or with
+    `grad` its `value_and_grad` through the gradient rollout (`Problem.train_rollout`)."""
+    model, fn = problem.train_rollout(grad=grad, duration=duration)
+    loss = problem.loss_fn(fn, model)
+    return jax.jit(jax.value_and_grad(loss, has_aux=True) if grad else loss)
+
+
 def bench_grad(tune: str = "tactile_tripod", batches: Sequence[int] = (64,),
                solver_grads: Sequence[str] = GRAD_SOLVERS, repeats: int = 2, progress: bool = True,
                unroll_substeps: bool = False) -> dict:
@@ -58,22 +75,14 @@ def bench_grad(tune: str = "tactile_tripod", batches: Sequence[int] = (64,),
     cfg = load_tune_config(tune, {"unroll_substeps": unroll_substeps} if unroll_substeps else None)
     problems = {s: Problem.build(dataclasses.replace(cfg, solver_grad=s)) for s in solver_grads}
     base = problems[solver_grads[0]]
-    ctrl_dt = base.train_ctrl.dt
-    n_phys = ((settle_steps(RolloutConfig(), ctrl_dt) + control_steps(base.duration, ctrl_dt))
-              * substeps(base.physics(), ctrl_dt))
+    n_phys = physics_steps(base)
     u0 = base.space.init(base.params0)
     data = {b: base.train_batch(0, b) for b in batches}  # the same terrains and headings for every mode
     rows = []
     jobs = [(b, m) for b in batches for m in ("forward",) + tuple(solver_grads)]
     for b, mode in tqdm(jobs, desc="bench --grad", disable=not progress):
         terr, keys = data[b]
-        if mode == "forward":
-            model, fn = base.train_rollout(grad=False)
-            f = jax.jit(base.loss_fn(fn, model))
-        else:
-            p = problems[mode]
-            model, fn = p.train_rollout(grad=True)
-            f = jax.jit(jax.value_and_grad(p.loss_fn(fn, model), has_aux=True))
+        f = objective_program(base if mode == "forward" else problems[mode], grad=mode != "forward")
         compile_s, run_s, out = _time(f, (u0, terr, keys), repeats)
         row = dict(batch=b, mode=mode if mode == "forward" else f"grad-{mode}", compile_s=round(compile_s, 2),
                    run_s=round(run_s, 4), env_steps_per_s=round(b * n_phys / run_s, 1))

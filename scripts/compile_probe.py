@@ -1,0 +1,78 @@
+"""The forward and gradient programs of `hexjax bench --grad` under sets of XLA compiler options.
+
+Lowers each program once (the tactile_tripod objective, implicit backward, B = --batch) and compiles it once per
+option set with `Lowered.compile(compiler_options=...)`, so every set sees the same HLO. Prints one JSON line per
+(program, options): lowering s, XLA compile s and, with --run, env-steps/s (best of two calls after a warm-up);
+gradient rows add the loss and the gradient's norm, so options that change the numbers show it. --json writes
+the rows (and each gradient as .npy beside it). Options are XLA DebugOptions fields, e.g.
+'{"xla_gpu_autotune_level": 0}'. Figures: docs/benchmarks.md, issue 19 (fifth session).
+
+    python scripts/compile_probe.py --batch 4096 --duration 3 --run --options '{}' '{"xla_gpu_autotune_level": 0}'
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import time
+
+import jax
+import numpy as np
+from jax.flatten_util import ravel_pytree
+
+from hexjax.experiments.bench_grad import objective_program, physics_steps
+from hexjax.tune.config import load_tune_config
+from hexjax.tune.objective import Problem
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--batch", type=int, default=4096, help="envs per call")
+    ap.add_argument("--options", nargs="+", default=["{}"], help="JSON objects of XLA options, one per set")
+    ap.add_argument("--modes", default="forward,grad", help="programs: comma list of forward, grad")
+    ap.add_argument("--run", action="store_true", help="also time each compiled program")
+    ap.add_argument("--unroll-substeps", action="store_true", help="the tuning key unroll_substeps")
+    ap.add_argument("--duration", type=float, default=None, help="walk s instead of the config's (9 s)")
+    ap.add_argument("--json", default=None, help="write the rows here")
+    a = ap.parse_args()
+    cfg = load_tune_config("tactile_tripod", {"unroll_substeps": True} if a.unroll_substeps else None)
+    p = Problem.build(dataclasses.replace(cfg, solver_grad="implicit"))
+    n_phys = physics_steps(p, a.duration)
+    u0 = p.space.init(p.params0)
+    terr, keys = p.train_batch(0, a.batch)
+    rows = []
+    for mode in a.modes.split(","):
+        t0 = time.perf_counter()
+        f = objective_program(p, grad=mode != "forward", duration=a.duration)
+        low = f.lower(u0, terr, keys)
+        lower_s = time.perf_counter() - t0
+        for opt in a.options:
+            o = json.loads(opt)
+            t0 = time.perf_counter()
+            c = low.compile(compiler_options=o or None)
+            comp_s = time.perf_counter() - t0
+            row = dict(mode=mode, options=o, lower_s=round(lower_s, 2), compile_s=round(comp_s, 2))
+            if a.run:
+                jax.block_until_ready(c(u0, terr, keys))
+                best = 1e9
+                for _ in range(2):
+                    t0 = time.perf_counter()
+                    jax.block_until_ready(c(u0, terr, keys))
+                    best = min(best, time.perf_counter() - t0)
+                row["env_steps_per_s"] = round(a.batch * n_phys / best, 1)
+                if mode != "forward":
+                    (loss, _), g = c(u0, terr, keys)
+                    flat = np.asarray(ravel_pytree(g)[0])
+                    row.update(loss=float(loss), grad_head=[float(v) for v in flat[:6]],
+                               grad_norm=float(np.linalg.norm(flat)))
+                    if a.json:
+                        np.save(a.json.replace(".json", f"_g{len(rows)}.npy"), flat)
+            print(json.dumps(row), flush=True)
+            rows.append(row)
+    if a.json:
+        with open(a.json, "w") as fh:
+            json.dump(dict(batch=a.batch, device=str(jax.devices()[0]), rows=rows), fh, indent=1)
+
+
+if __name__ == "__main__":
+    main()
