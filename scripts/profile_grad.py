@@ -34,6 +34,7 @@ import time
 import jax
 import numpy as np
 
+from hexjax.experiments.bench_grad import objective_program
 from hexjax.tune.config import load_tune_config
 from hexjax.tune.objective import Problem
 
@@ -180,16 +181,10 @@ def main():
     res = dict(config=a.config, batch=a.batch, overrides=overrides, solver_grad=cfg.solver_grad,
                device=str(jax.devices()[0].device_kind), jax=jax.__version__, date=time.strftime("%Y-%m-%d"),
                programs=[])
-    def rollout_fn(grad):
-        return prob.train_rollout(grad=grad, duration=a.duration, settle_time=a.settle)
-
-    if a.only in ("forward", "both"):
-        model, fn = rollout_fn(False)
-        res["programs"].append(profile(jax.jit(prob.loss_fn(fn, model)), (u0, terr, keys), "forward", a.top, a.hlo_dir))
-    if a.only in ("grad", "both"):
-        model, fn = rollout_fn(True)
-        vg = jax.jit(jax.value_and_grad(prob.loss_fn(fn, model), has_aux=True))
-        res["programs"].append(profile(vg, (u0, terr, keys), "value_and_grad", a.top, a.hlo_dir))
+    for grad, label in ((False, "forward"), (True, "value_and_grad")):
+        if a.only in ("both", "grad" if grad else "forward"):
+            fn = objective_program(prob, grad, duration=a.duration, settle_time=a.settle)
+            res["programs"].append(profile(fn, (u0, terr, keys), label, a.top, a.hlo_dir))
     for p in res["programs"]:
         print(f"\n== {p['label']}: wall {p['wall_s']:.3f} s, kernels {p['kernel_s']:.3f} s over {p['kernels']} ops, "
               f"compile {p['compile_s']:.1f} s; phases " + ", ".join(f"{k} {v:.3f} s" for k, v in p["phases"].items()))
