@@ -1,12 +1,19 @@
 # hexjax: `make demo` sets everything up and runs the main job on a small CPU default; `make test` runs the tests.
-PY ?= python3.11
+# Python 3.12 (jax 0.11 needs it): the first of these that runs, pyenv's install included when it is not the
+# selected version; `make PY=/path/to/python3.12` chooses another
+PY_OK := import sys; sys.exit(sys.version_info[:2] != (3, 12))
+ifndef PY
+PY := $(firstword $(foreach p,python3.12 $(wildcard $(or $(PYENV_ROOT),$(HOME)/.pyenv)/versions/3.12*/bin/python3.12) python3,\
+        $(shell $(p) -c '$(PY_OK)' >/dev/null 2>&1 && echo $(p))))
+endif
 VENV := .venv
 BIN := $(VENV)/bin
 
 .PHONY: setup demo test bench clean
 
 $(BIN)/hexjax: pyproject.toml constraints.txt
-	test -x $(BIN)/python || $(PY) -m venv $(VENV) || python3 -m venv $(VENV)
+	@test -n "$(PY)" || { echo "hexjax needs Python 3.12 (jax 0.11): none found as python3.12, in ~/.pyenv or as python3; run make PY=/path/to/python3.12" >&2; exit 1; }
+	$(BIN)/python -c '$(PY_OK)' 2>/dev/null || { rm -rf $(VENV); $(PY) -m venv $(VENV); }
 	$(BIN)/python -m pip install -q --upgrade pip
 	$(BIN)/python -m pip install -q -c constraints.txt -e '.[test]'
 	touch $(BIN)/hexjax

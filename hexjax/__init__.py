@@ -19,35 +19,10 @@ if not _os.environ.get("HEXJAX_KEEP_XLA_FLAGS"):
         _os.environ["XLA_FLAGS"] = (_flags + " --xla_cpu_enable_concurrency_optimized_scheduler=false").strip()
 
 
-def _lapack_pool_threads(environ=_os.environ) -> "str | None":
-    """The size to give XLA:CPU's intra-op thread pool (env PJRT_NPROC), or None to leave it.
-
-    jaxlib 0.10.x (0.10.0 up to 0.11.0; this project's CPU pin is 0.10.2, and 0.11.1+ needs Python >= 3.12)
-    splits a batched LAPACK call (Cholesky, triangular solve: MJX's mass-matrix factor, its solver, the
-    implicit backward) over that pool and blocks its own worker until the parts are done. When as many such
-    calls run at once as the pool has threads, every thread waits and the program hangs at 0 % CPU. The pool
-    is as large as the machine has cores, so on 2 cores two concurrent factorisations suffice: the gradient of
-    the tactile objective at B = 64 hung in its first call (native stacks: two workers in
-    `jax::ParallelBatchMap` under `lapack_spotrf_ffi`), as did four independent batched Choleskys in one
-    program. With 16 threads the same runs finish, give the same numbers, and run no slower within the noise
-    of the 2-core dev machine (docs/benchmarks.md, issue 19, fifth session). Set PJRT_NPROC (or NPROC)
-    yourself to choose another size."""
-    if "PJRT_NPROC" in environ or "NPROC" in environ:
-        return None
-    try:
-        from importlib.metadata import version
-        major, minor, patch = (int(v) for v in version("jaxlib").split(".")[:3])
-    except Exception:  # not installed the usual way: leave the pool as jaxlib sizes it
-        return None
-    if not (0, 10, 0) <= (major, minor, patch) < (0, 11, 1):
-        return None
-    cores = len(_os.sched_getaffinity(0)) if hasattr(_os, "sched_getaffinity") else (_os.cpu_count() or 1)
-    return str(max(16, cores))
-
-
-_pool = _lapack_pool_threads()
-if _pool is not None:  # read when jax creates its CPU client, so before any computation
-    _os.environ["PJRT_NPROC"] = _pool
+# jaxlib 0.10.x split each batched LAPACK call (MJX's Cholesky, the implicit backward's solves) over XLA:CPU's
+# intra-op pool and blocked its worker until the parts finished, so on 2 cores two concurrent calls deadlocked;
+# hexjax sized that pool (PJRT_NPROC) while it ran on 0.10.2. jaxlib 0.11.1 removed that path, and hexjax now
+# needs jax 0.11.2 (docs/benchmarks.md, issue 19, fifth and sixth sessions; tests/test_runtime.py).
 
 _cache.enable()
 
