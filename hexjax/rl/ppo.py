@@ -12,6 +12,7 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from hexjax.rl.env import HexapodGoalEnv
+from hexjax.sim.rollout import gspmd
 
 
 def _device_put_replicated(x, devices):
@@ -65,7 +66,8 @@ def train_ppo(env: HexapodGoalEnv, num_timesteps: int = 60_000, num_envs: int = 
               learning_rate=3e-4, entropy_cost=1e-3, discounting=0.97, normalize_observations=True,
               num_eval_envs=num_envs, seed=seed, progress_fn=on_progress)
     kw.update(ppo_kwargs)
-    make_policy, params, _ = ppo.train(environment=env, **kw)
+    with gspmd():  # brax's pmap over the local devices is a shard_map in jax 0.11 (`gspmd`)
+        make_policy, params, _ = ppo.train(environment=env, **kw)
     return history, make_policy, params
 
 

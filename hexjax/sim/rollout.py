@@ -219,7 +219,8 @@ def rollout(robot: RobotSpec, terrain: Terrain, controller: Controller, params, 
         args = (model, params, terrain, keys) + ((sm.make_data(b),) if impl == "warp" else ())
         if perturbed:  # after the data template (warp's, or None)
             args += ((perturbation,) if impl == "warp" else (None, perturbation))
-        out, cs = fn.call(*args)
+        with gspmd() if mesh is not None else contextlib.nullcontext():
+            out, cs = fn.call(*args)
         compile_s, compiled = cs.compile_s, cs.source
         if mesh is not None and jax.process_count() > 1:  # every process gets the whole batch's summary
             from jax.experimental import multihost_utils
@@ -247,6 +248,17 @@ def rollout_function(robot: RobotSpec, controller: Controller, duration: float, 
     n_ctrl = _check_static(robot, controller, duration, physics, config)
     sm, fn = _compiled(robot, physics, sensors, controller, config, n_ctrl, params_batched, "jax", perturbed)
     return sm.mjx_model, (fn if kept else fn.jitted)
+
+
+def gspmd():
+    """Context in which JAX partitions programs over several devices with GSPMD instead of Shardy. jaxlib 0.11.2's
+    Shardy pass segfaults compiling the sharded rollout, and Brax's PPO (whose `pmap` JAX 0.11 runs as a
+    `shard_map`), in a canonicalisation pattern for the manual computation's unused inputs
+    (`ManualComputationUnusedInputsPattern`, gdb); a (0, 3) array summed inside a 2-device `shard_map` on the
+    CPU crashes the same way. GSPMD compiles both, and the sharded rollout's program still holds no collective
+    (tests/test_rollout.py)."""
+    from jax._src import config as jax_config  # the setting's context manager; jax.config has only `update`
+    return jax_config.use_shardy_partitioner(False)
 
 
 def check_perturbation(perturbation, b: int):
