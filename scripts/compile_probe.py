@@ -20,7 +20,7 @@ import jax
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
-from hexjax.experiments.bench_grad import objective_program, physics_steps
+from hexjax.experiments.bench_grad import best_call, objective_program, physics_steps
 from hexjax.tune.config import load_tune_config
 from hexjax.tune.objective import Problem
 
@@ -53,15 +53,10 @@ def main():
             comp_s = time.perf_counter() - t0
             row = dict(mode=mode, options=o, lower_s=round(lower_s, 2), compile_s=round(comp_s, 2))
             if a.run:
-                jax.block_until_ready(c(u0, terr, keys))
-                best = 1e9
-                for _ in range(2):
-                    t0 = time.perf_counter()
-                    jax.block_until_ready(c(u0, terr, keys))
-                    best = min(best, time.perf_counter() - t0)
+                best, out = best_call(c, (u0, terr, keys), 2)
                 row["env_steps_per_s"] = round(a.batch * n_phys / best, 1)
                 if mode != "forward":
-                    (loss, _), g = c(u0, terr, keys)
+                    (loss, _), g = out
                     flat = np.asarray(ravel_pytree(g)[0])
                     row.update(loss=float(loss), grad_head=[float(v) for v in flat[:6]],
                                grad_norm=float(np.linalg.norm(flat)))

@@ -35,13 +35,18 @@ def _time(fn, args, repeats: int):
     t0 = time.perf_counter()
     compiled = fn.lower(*args).compile()
     compile_s = time.perf_counter() - t0
+    return (compile_s,) + best_call(compiled, args, repeats)
+
+
+def best_call(compiled, args, repeats: int):
+    """(best call s, output) of a compiled program: one warm-up call, then the fastest of `repeats` timed ones."""
     out = jax.block_until_ready(compiled(*args))
     best = np.inf
     for _ in range(max(repeats, 1)):
         t0 = time.perf_counter()
         out = jax.block_until_ready(compiled(*args))
         best = min(best, time.perf_counter() - t0)
-    return compile_s, best, out
+    return best, out
 
 
 def physics_steps(problem: Problem, duration: float | None = None) -> int:
