@@ -51,6 +51,26 @@ def pytest_xdist_make_scheduler(config, log):
             name = nodeid.split("::")[-1].split("[")[0]
             return SHARED_FIXTURES.get(name, nodeid)
 
+        def remove_node(self, node):
+            """A worker left: if it crashed, the test it was running (reported as failed by xdist) and the tests
+            it had not started go back in the queue, the crashed test marked done. xdist 3.8 re-queues every
+            unit the worker was ever given, finished ones too; a replacement worker handed a finished unit has
+            nothing to run, never reports back and is never given the rest, so the run waited at 0 % CPU until
+            CI's limit. It also runs the crashed test again, up to 8 times for a crash that repeats."""
+            workload = self.assigned_work.pop(node)
+            pending = [nid for unit in workload.values() for nid, done in unit.items() if not done]
+            if not pending:
+                return None
+            crashed = pending[0]  # a worker runs its tests in the order it got them
+            for scope, unit in workload.items():
+                if crashed in unit:
+                    unit[crashed] = True
+                if not all(unit.values()):
+                    self.workqueue[scope] = unit
+            for other in self.assigned_work:
+                self._reschedule(other)
+            return crashed
+
     return SharedFixtureScheduling(config, log)
 
 

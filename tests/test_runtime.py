@@ -34,3 +34,63 @@ def test_concurrent_batched_lapack_calls_finish():
         pytest.fail("four concurrent batched Cholesky calls did not finish in 150 s (the LAPACK pool deadlock)")
     assert r.returncode == 0, r.stderr[-2000:]
     assert float(r.stdout.split()[-1]) < 1e-3  # the factors are right, not only returned
+
+
+# A toy suite run under tests/conftest.py's scheduler with two workers, in which two tests kill their worker: the
+# first test of a shared-fixture group (named as one of SHARED_FIXTURES' groups) and the last quick test.
+_CRASHING_SUITE = '''
+import os, time
+
+def _crash_once(name):
+    mark = os.path.join(os.environ["CRASH_DIR"], name)
+    if not os.path.exists(mark):
+        open(mark, "w").close()
+        os.abort()
+
+def test_converged_jacobian_matches_unrolled_and_central_differences():
+    _crash_once("group")
+
+def test_forces_and_acceleration_jacobian_against_unrolled():
+    time.sleep(0.2)
+
+def test_slow():
+    time.sleep(3)
+
+def test_quick_0():
+    time.sleep(0.3)
+
+def test_quick_1():
+    time.sleep(0.3)
+
+def test_quick_2():
+    time.sleep(0.3)
+
+def test_quick_3():
+    time.sleep(0.3)
+    _crash_once("last")
+'''
+
+
+def test_a_crashed_worker_fails_its_test_and_the_run_goes_on(tmp_path):
+    """A test that kills its worker (a segfault in XLA, say) fails, and every other test runs once and the run
+    ends: with xdist 3.8's own bookkeeping the replacement worker was handed finished work and the run waited
+    forever (tests/conftest.py, `remove_node`)."""
+    import shutil
+    shutil.copy(os.path.join(os.path.dirname(__file__), "conftest.py"), tmp_path / "conftest.py")
+    (tmp_path / "test_toy.py").write_text(_CRASHING_SUITE)
+    (tmp_path / "marks").mkdir()
+    env = dict(os.environ, CRASH_DIR=str(tmp_path / "marks"))
+    try:
+        r = subprocess.run([sys.executable, "-m", "pytest", "-q", "-rA", "-n", "2", "-p", "no:cacheprovider",
+                            "test_toy.py"], cwd=tmp_path, capture_output=True, text=True, timeout=120, env=env)
+    except subprocess.TimeoutExpired as e:
+        pytest.fail(f"the run did not end in 120 s after a worker crashed:\n{(e.stdout or b'')[-2000:]}")
+    out = r.stdout
+    assert r.returncode == 1, out[-3000:]
+    assert sorted(os.listdir(tmp_path / "marks")) == ["group", "last"], out[-3000:]  # both crashes happened
+    for name in ("test_converged_jacobian_matches_unrolled_and_central_differences", "test_quick_3"):
+        assert out.count(f"FAILED test_toy.py::{name}") == 1 and f"crashed while running 'test_toy.py::{name}'" in out
+    for name in ("test_forces_and_acceleration_jacobian_against_unrolled", "test_slow", "test_quick_0",
+                 "test_quick_1", "test_quick_2"):
+        assert out.count(f"PASSED test_toy.py::{name}") == 1, (name, out[-3000:])
+    assert "2 failed, 5 passed" in out, out[-3000:]
