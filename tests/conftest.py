@@ -37,7 +37,7 @@ SHARED_FIXTURES = {
     "test_mujoco_c_backend_walks_like_mjx": "mjx_run",
     "test_warp_backend_walks_like_mjx": "mjx_run",
     "test_converged_jacobian_matches_unrolled_and_central_differences": "standing",
-    "test_forces_and_acceleration_jacobian_against_unrolled": "standing",
+    "test_forces_and_acceleration_jacobian_against_central_differences_and_unrolled": "standing",
 }
 
 
@@ -137,8 +137,31 @@ def _listen_once():
     monitoring.register_event_listener(count)
 
 
+def _log_programs(path):
+    """HEXJAX_TEST_COMPILE_LOG=<folder>: every traced, lowered and compiled program (jax_log_compiles), one line
+    each, prefixed with the test that ran it, in <folder>/<worker>.log: which test compiles which program."""
+    import logging
+
+    import jax
+    jax.config.update("jax_log_compiles", True)
+    os.makedirs(path, exist_ok=True)
+    handler = logging.FileHandler(os.path.join(path, os.environ.get("PYTEST_XDIST_WORKER", "main") + ".log"))
+
+    class WithTest(logging.Filter):
+        def filter(self, record):
+            record.test = _CURRENT[0] or "-"
+            return True
+
+    handler.addFilter(WithTest())
+    handler.setFormatter(logging.Formatter("%(created).1f\t%(test)s\t%(message).400s"))
+    for name in ("jax._src.dispatch", "jax._src.interpreters.pxla", "jax._src.compiler"):
+        logging.getLogger(name).addHandler(handler)
+
+
 @pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_protocol(item, nextitem):
+    if not _LISTENING and os.environ.get("HEXJAX_TEST_COMPILE_LOG"):
+        _log_programs(os.environ["HEXJAX_TEST_COMPILE_LOG"])
     _listen_once()
     _CURRENT[0] = item.nodeid
     _COMPILE.setdefault(item.nodeid, [0.0, 0, 0])

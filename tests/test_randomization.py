@@ -132,8 +132,15 @@ def test_each_perturbation_does_what_it_should(perturbed_walks):
     assert adv[nom] == adv[row["nominal again"]] and z[nom].mean() == z[row["nominal again"]].mean()
     # the nominal walk crosses the bar with overcoming steps
     assert adv[nom] > 0.3 and n_over[nom] >= 2  # the bar stands at 0.26 m
-    # a 0.6 kg payload (the robot weighs about 1.5 kg) sinks the torso (measured 3.1 mm)
-    assert z[row["payload"]].mean() < z[nom].mean() - 0.0015
+    # a 0.6 kg payload (the robot weighs about 1.5 kg) sinks the torso, measured on the flat ground before the bar:
+    # the control steps before a foot of either walk passes x = 0.2 m (139 of 987; 0.86 mm lower there, and
+    # 0.6-1.1 mm in each 25 steps of it). Over the whole walk the crossing of the bar moves the means of 25 steps
+    # by up to 14 mm either way, so the mean of the whole walk is no measure of it: 3.1 mm on one machine,
+    # 1.1 mm on another (AVX-512), whose rounding the chaotic crossing amplifies
+    front = np.asarray(s.foot_trace)[..., 0].max(-1)  # the foremost foot's x per control step
+    before_bar = int(np.argmax((front[nom] > 0.2) | (front[row["payload"]] > 0.2)))
+    assert before_bar >= 50, before_bar
+    assert z[row["payload"], :before_bar].mean() < z[nom, :before_bar].mean() - 0.0005
     # without friction the feet slip: the robot hardly advances (measured 0.02 m against 0.38 m)
     assert adv[row["no friction"]] < 0.25 * adv[nom]
     # a locked leg turns the walk (measured 0.79 rad of heading change against 0.12 rad)

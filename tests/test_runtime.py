@@ -50,7 +50,7 @@ def _crash_once(name):
 def test_converged_jacobian_matches_unrolled_and_central_differences():
     _crash_once("group")
 
-def test_forces_and_acceleration_jacobian_against_unrolled():
+def test_forces_and_acceleration_jacobian_against_central_differences_and_unrolled():
     time.sleep(0.2)
 
 def test_slow():
@@ -90,7 +90,7 @@ def test_a_crashed_worker_fails_its_test_and_the_run_goes_on(tmp_path):
     assert sorted(os.listdir(tmp_path / "marks")) == ["group", "last"], out[-3000:]  # both crashes happened
     for name in ("test_converged_jacobian_matches_unrolled_and_central_differences", "test_quick_3"):
         assert out.count(f"FAILED test_toy.py::{name}") == 1 and f"crashed while running 'test_toy.py::{name}'" in out
-    for name in ("test_forces_and_acceleration_jacobian_against_unrolled", "test_slow", "test_quick_0",
+    for name in ("test_forces_and_acceleration_jacobian_against_central_differences_and_unrolled", "test_slow", "test_quick_0",
                  "test_quick_1", "test_quick_2"):
         assert out.count(f"PASSED test_toy.py::{name}") == 1, (name, out[-3000:])
     assert "2 failed, 5 passed" in out, out[-3000:]

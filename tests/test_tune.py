@@ -59,13 +59,18 @@ def test_gradient_matches_central_differences_per_group():
 def test_cpg_gradient_matches_central_differences():
     """The same check for the seed-003 CPG on `yu2019`, for every group of the "cpg" preset: the linear
     converter (trims, clearance; Eq. 6), the contact thresholds F_contact (Eqs. 8-9) and the elevator reflex
-    (T_s, regenerated clearance; Eqs. 10-11). Two settings differ from the tactile check (docs/tuning.md):
+    (T_s, regenerated clearance; Eqs. 10-11). Three settings differ from the tactile check (docs/tuning.md):
     4 Newton iterations (with 2 the solver does not converge under the stiff servos and the rollout is rough)
     and phase gates scaled with the network's rate (it runs 5x faster so that the window holds a lift-off,
     so temp_phase is 5x too). As the tactile check puts its threshold inside the gate's width, F_contact-x/y
     of 1 N inside a 3 N force gate lets the elevator fire in part at every swing on flat ground, so its
-    params act on the travel. With the solver converged, the implicit backward (`solver_grad='implicit'`)
-    must give the same gradient as the unrolled one (cosine >= 0.99 per group) and pass the same check."""
+    params act on the travel. The differences step by 3e-3, not 1e-3: the elevator's derivatives (~1e-5 m) are
+    only a few times the differences' rounding noise at 1e-3 (2-3e-6), so its cosine there hung on the
+    machine's rounding (0.99 on one machine, 0.73 on an AVX-512 one). 3e-3 cuts that noise threefold and is
+    still short of truncation (the converter's cosine is 1.000 at 1e-3, 3e-3 and 1e-2, 0.99 at 3e-2); measured
+    on the AVX-512 machine: 1.000, 1.000 and 0.976 for the three groups.
+    With the solver converged, the implicit backward (`solver_grad='implicit'`) must give the same gradient as
+    the unrolled one (cosine >= 0.99 per group) and pass the same check."""
     robot = yu2019()
     ctrl = CPGController(robot, smooth=True)
     p = ctrl.default_params()
@@ -82,7 +87,7 @@ def test_cpg_gradient_matches_central_differences():
     assert sorted(sum(groups.values(), [])) == sorted(space.names)
     static = (robot, ctrl, phys, rc, 0.4, space, arrays_digest(p, terr, keys))
     u0 = space.init(p)
-    res = _cosines(travel_objective(fn, model, space, p, terr, keys), u0, groups, static)
+    res = _cosines(travel_objective(fn, model, space, p, terr, keys), u0, groups, static, eps=3e-3)
     for group, (cos, a, b) in res.items():
         print(group, f"cosine {cos:.3f} |autodiff| {np.linalg.norm(a):.3g} |FD| {np.linalg.norm(b):.3g}")
         assert cos >= 0.9, f"{group}: cosine {cos:.3f}, autodiff {a}, central differences {b}"
