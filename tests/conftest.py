@@ -81,19 +81,35 @@ def pytest_collection_modifyitems(items):
     items.sort(key=rank)  # stable: the rest keep their order
 
 
+# JAX's own caches are cleared after a module only when the process holds more than this much memory
+_CLEAR_ABOVE_GIB = 4.0
+
+
+def _rss_gib() -> float:
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 1024 ** 3
+
+
 @pytest.fixture(autouse=True, scope="module")
 def _free_compiled_rollouts():
     """Each module's compiled rollouts are dropped after it. One process compiles dozens of MJX programs;
     kept alive in `_compiled`'s cache and JAX's, they only grow the process (a full run once died with a
     segfault inside XLA's compiler late in the run; the same test passed alone). A later module that needs
-    the same program again loads it from the persistent compilation cache (`hexjax.cache`)."""
+    the same program again loads it from the persistent compilation cache (`hexjax.cache`).
+    JAX's own caches go too, but only once the process holds more than `_CLEAR_ABOVE_GIB`: they also hold the
+    small programs of eager operations (one per operation and shape), and clearing them after every module made
+    each module compile its eager operations again (half of a warm run's 7,260 compiles, about 80 s of CPU)."""
     yield
+    import gc
     import sys
 
-    import jax
     if "hexjax.sim.rollout" in sys.modules:
         sys.modules["hexjax.sim.rollout"]._compiled.cache_clear()
-    jax.clear_caches()
+    gc.collect()
+    if _rss_gib() > _CLEAR_ABOVE_GIB:
+        import jax
+        jax.clear_caches()
+        gc.collect()
 
 
 # Compile time per test, from JAX's monitoring events: tracing, lowering and the backend compile (or the load of
