@@ -65,3 +65,35 @@ def enable(quiet: bool = False) -> Optional[Path]:
         print(f"hexjax: compiled programs are cached in {xla} (set {ENV} to move it, {ENV}=off to turn it off)",
               file=sys.stderr)
     return xla
+
+
+def every_cpu_process_writes() -> bool:
+    """In a multi-process run (`jax.distributed`), let every process keep the CPU programs it compiles.
+
+    JAX writes persistent-cache entries from process 0 only (so that processes do not contend for one file on a
+    shared file system). On XLA:CPU a program's cache key includes the topology as the process sees it, so the
+    key of process k > 0 differs from process 0's: nobody writes it, and process k compiles every program again
+    on every run (the 2-process robustness sweep's rollout: 16 s on 2 cores, while process 0, which loads its own
+    entry in 1 s, waits for it at the first collective). Each process's key is its own, so its writes contend
+    with no one. Returns False where JAX's internals for this have moved (then nothing changes)."""
+    try:
+        from jax._src import compiler, distributed
+        write = compiler._cache_write
+        if getattr(write, "_hexjax_every_process", False):
+            return True
+
+        def cache_write(cache_key, compile_time_secs, module_name, backend, executable):
+            pid = distributed.global_state.process_id
+            if pid == 0 or getattr(backend, "platform", "") != "cpu":
+                return write(cache_key, compile_time_secs, module_name, backend, executable)
+            distributed.global_state.process_id = 0  # JAX's own check, for this write only
+            try:
+                return write(cache_key, compile_time_secs, module_name, backend, executable)
+            finally:
+                distributed.global_state.process_id = pid
+
+        cache_write._hexjax_every_process = True
+        compiler._cache_write = cache_write
+        return True
+    except (ImportError, AttributeError):
+        return False

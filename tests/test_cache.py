@@ -58,3 +58,23 @@ def test_a_compiled_rollout_is_kept_and_reloaded_by_the_next_process(tmp_path):
     assert float(second[1]) < 0.5 * float(first[1])
     assert first[2] == second[2]  # bit-identical end poses
     assert len(os.listdir(tmp_path / "programs")) == 1
+
+
+def test_every_cpu_process_keeps_the_programs_it_compiles(monkeypatch):
+    """In a multi-process run a process other than 0 writes the CPU programs it compiles to the cache: JAX writes
+    from process 0 only, and on the CPU each process's key holds its own view of the topology, so process 1's
+    entries were never written and it compiled the sweep's rollout on every run (`every_cpu_process_writes`).
+    A GPU program of process 1 is still left to process 0's write."""
+    import types
+
+    from jax._src import compiler, distributed
+
+    from hexjax import cache
+    written = []
+    monkeypatch.setattr(compiler.compilation_cache, "put_executable_and_time", lambda key, *a: written.append(key))
+    monkeypatch.setattr(compiler, "_cache_write", compiler._cache_write)  # put back after the test
+    assert cache.every_cpu_process_writes() and cache.every_cpu_process_writes()  # a second call wraps nothing more
+    monkeypatch.setattr(distributed.global_state, "process_id", 1)
+    for platform in ("cpu", "gpu"):
+        compiler._cache_write(f"key-{platform}", 10.0, "jit_f", types.SimpleNamespace(platform=platform), None)
+    assert written == ["key-cpu"] and distributed.global_state.process_id == 1

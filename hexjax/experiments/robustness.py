@@ -21,6 +21,7 @@ from typing import Dict, List, Sequence, Tuple
 
 import numpy as np
 
+from hexjax import cache
 from hexjax.world.randomization import AXES as RANDOM_AXES
 
 # terrain axes: the sweep value v sets the obstacle terrain spec's range to [v, v]; `difficulty` sets any
@@ -334,6 +335,7 @@ def _distributed(o) -> None:
     import jax
     jax.config.update("jax_cpu_collectives_implementation", "gloo")  # CPU hosts; GPUs use NCCL
     jax.distributed.initialize(coordinator_address=coord, num_processes=n, process_id=pid)
+    cache.every_cpu_process_writes()
 
 
 def run(o, entry) -> Dict:
