@@ -93,17 +93,17 @@ def test_forces_and_acceleration_jacobian_against_central_differences_and_unroll
         x = mjx.forward(m, d.replace(qvel=qvel, ctrl=ctrl))
         return jnp.concatenate([x.qacc, x.qfrc_constraint, x._impl.efc_force])
 
-    # a fresh function per solver mode: one jitted function would be traced once, under the first patch
+    # a jitted function per solver mode (jax.jacrev makes a new one each call): one jitted function would be
+    # traced once, under the first patch
     with reversible_solver(ITERATIONS):
-        ju = _kept(jax.jacrev(lambda *a: f(*a), argnums=(0, 1)), d, "forward-jac", "unrolled")(d.qvel, d.ctrl)
+        ju = _kept(jax.jacrev(f, argnums=(0, 1)), d, "forward-jac", "unrolled")(d.qvel, d.ctrl)
     with implicit_solver():
-        ji = _kept(jax.jacrev(lambda *a: f(*a), argnums=(0, 1)), d, "forward-jac", "implicit")(d.qvel, d.ctrl)
+        ji = _kept(jax.jacrev(f, argnums=(0, 1)), d, "forward-jac", "implicit")(d.qvel, d.ctrl)
     # central differences: every entry of both inputs, +eps and -eps, in one batched call of MJX's own forward
     eps, n_v = 1e-3, d.qvel.shape[0]
     n = n_v + d.ctrl.shape[0]
     steps = np.concatenate([np.eye(n, dtype=np.float32), -np.eye(n, dtype=np.float32)]) * eps
-    values = np.asarray(_kept(jax.vmap(lambda *a: f(*a)), d, "forward-vmap", "mjx")(d.qvel + steps[:, :n_v],
-                                                                                    d.ctrl + steps[:, n_v:]))
+    values = np.asarray(_kept(jax.vmap(f), d, "forward-vmap", "mjx")(d.qvel + steps[:, :n_v], d.ctrl + steps[:, n_v:]))
     fd = ((values[:n] - values[n:]) / (2 * eps)).T  # (outputs, inputs)
     fd = (fd[:, :n_v], fd[:, n_v:])
     for name, a, b, c in zip(("qvel", "ctrl"), ji, ju, fd):
