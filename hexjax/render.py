@@ -67,9 +67,9 @@ def scene_model(robot: RobotSpec, physics: PhysicsConfig, box_pos, box_half, box
     floor.material = "grid"
     floor.size = [6.0, 6.0, 0.05]  # finite: an infinite plane drew dark bands near the horizon
     floor.rgba = [1.0, 1.0, 1.0, 1.0]
+    # placed before compiling: a geom compiled at its body's origin ignores later writes to geom_pos
+    floor.pos = [0.0, 0.0, float(ground_z)]
     m = spec.compile()
-    ground = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, "ground")
-    m.geom_pos[ground, 2] = float(ground_z)
     m.vis.global_.offwidth = max(m.vis.global_.offwidth, 1920)
     m.vis.global_.offheight = max(m.vis.global_.offheight, 1080)
     return m

@@ -52,6 +52,17 @@ def test_mujoco_c_backend_walks_like_mjx(mjx_run):
     _agree(mjx_run, out)
 
 
+def test_mujoco_c_ground_plane_sits_at_the_terrains_ground_z():
+    """Terrains with a lowered ground plane (Yu 2019's ditches, stairs-down, slope-down, stones) move the plane
+    per env. The same flat walk with the plane at 0 and at -5 cm: the torso keeps the same height above its
+    plane (it was 5 cm higher while MuJoCo ignored the moved plane and the robot walked at z = 0)."""
+    flat = sample(get_terrain("flat"), jax.random.PRNGKey(0), 2)
+    terr = flat.replace(ground_z=np.array([0.0, -0.05], np.float32))
+    out = rollout(ROBOT, terr, CTRL, CTRL.default_params(), 1.0, jax.random.PRNGKey(1), backend="c", nthread=1)
+    h = np.asarray(out.min_height)
+    assert 0.03 < h[0] < 0.15 and abs(h[1] - h[0]) < 0.005, h
+
+
 def test_warp_backend_walks_like_mjx(mjx_run):
     if os.environ.get("HEXJAX_REQUIRE_WARP"):  # `make test` (and so CI) installs warp-lang: its absence fails
         import warp  # noqa: F401

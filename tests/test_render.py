@@ -51,6 +51,17 @@ def test_frames_show_the_robot_forces_and_tactile_pads(tmp_path):
         assert os.path.getsize(path) > 1000
 
 
+def test_scene_floor_sits_at_the_terrains_ground_z():
+    """A ditch terrain's floor is its lowered ground plane: drawn at z = 0, it hid the ditches."""
+    import mujoco
+
+    from hexjax.render import scene_model
+    m = scene_model(ROBOT, PhysicsConfig(), np.zeros((1, 3)), np.full((1, 3), 0.01), np.zeros(1, bool), -0.1)
+    d = mujoco.MjData(m)
+    mujoco.mj_forward(m, d)
+    assert d.geom_xpos[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, "ground"), 2] == pytest.approx(-0.1)
+
+
 def test_render_rejects_bad_input(tmp_path):
     rec = _fake_recording()
     with pytest.raises(ValueError, match="env=3"):
