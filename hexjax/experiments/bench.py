@@ -41,6 +41,8 @@ def mujoco_c_steps_per_s(robot: str, terrain: str, physics: PhysicsConfig, secon
     m = mujoco.MjModel.from_xml_string(sm.xml)
     mx, _ = batch_model(sm, sample(get_terrain(terrain), jax.random.PRNGKey(0), 1))
     m.geom_pos[:] = np.asarray(mx.geom_pos[0])
+    # the plane follows the terrain's ground_z only if MuJoCo reads its geom_pos (hexjax.sim.backends.mujoco_c)
+    m.geom_sameframe[sm.ground_geom] = mujoco.mjtSameFrame.mjSAMEFRAME_NONE
     m.geom_size[:] = np.asarray(mx.geom_size[0])
     d = mujoco.MjData(m)
     mujoco.mj_resetDataKeyframe(m, d, 0)
