@@ -41,8 +41,10 @@ def test_concurrent_batched_lapack_calls_finish():
 # A toy suite run under tests/conftest.py's scheduler with two workers, in which two tests kill their worker: the
 # first test of a shared-fixture group (named as the first two tests of a group of SHARED_FIXTURES, so that the
 # scheduler hands them out together) and the last quick test.
-_GROUP = next(names for names in ([t for t, g in SHARED_FIXTURES.items() if g == group]
-                                  for group in SHARED_FIXTURES.values()) if len(names) >= 2)[:2]
+_BY_FIXTURE = {}
+for _test, _fixture in SHARED_FIXTURES.items():
+    _BY_FIXTURE.setdefault(_fixture, []).append(_test)
+_GROUP = next(tests for tests in _BY_FIXTURE.values() if len(tests) >= 2)[:2]
 _CRASHING_SUITE = f'''
 import os, time
 

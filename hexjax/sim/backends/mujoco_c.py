@@ -68,10 +68,11 @@ def _template(robot: RobotSpec, physics: PhysicsConfig, n_boxes: int) -> _Templa
     # the ground plane moves with each env's ground_z (`_models` writes its geom_pos); compiled at the world
     # frame's origin it is marked as sharing that frame, and mj_kinematics then ignores geom_pos: the plane
     # stayed at z = 0 and filled Yu 2019's ditches and the lowered families (stairs-down, slope-down, stones)
-    m.geom_sameframe[gid("ground")] = mujoco.mjtSameFrame.mjSAMEFRAME_NONE
+    ground = gid("ground")
+    m.geom_sameframe[ground] = mujoco.mjtSameFrame.mjSAMEFRAME_NONE
     return _Template(model=m, box_geoms=np.array([gid(f"terrain_{j}") for j in range(n_boxes)], dtype=int),
                      box_bodies=bodies, box_bvh=np.asarray(m.body_bvhadr[bodies], dtype=int),
-                     ground_geom=gid("ground"),
+                     ground_geom=ground,
                      torso_body=mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, "torso"),
                      qpos0=np.array(m.key_qpos[key]), ctrl0=np.array(m.key_ctrl[key]),
                      nstate=mujoco.mj_stateSize(m, _FULL), pool=[])
