@@ -1,6 +1,7 @@
 """jaxlib's CPU runtime under concurrent batched LAPACK calls: with jaxlib 0.10.x (hexjax's pin until the sixth
 session of issue 19) they could wait on each other forever on a machine with few cores; the pinned jaxlib must
-not (hexjax/__init__.py)."""
+not (hexjax/__init__.py). The XLA:CPU flags that `import hexjax` sets. The test scheduler survives a crashed
+worker."""
 
 import os
 import subprocess
@@ -36,6 +37,30 @@ def test_concurrent_batched_lapack_calls_finish():
         pytest.fail("four concurrent batched Cholesky calls did not finish in 150 s (the LAPACK pool deadlock)")
     assert r.returncode == 0, r.stderr[-2000:]
     assert float(r.stdout.split()[-1]) < 1e-3  # the factors are right, not only returned
+
+
+_FLAGS = "import os, hexjax; print(os.environ.get('XLA_FLAGS', ''))"
+
+
+@pytest.mark.parametrize("given,keep,expect", [
+    ("", "", ["--xla_cpu_enable_concurrency_optimized_scheduler=false",
+              "--xla_backend_extra_options=xla_cpu_disable_new_fusion_emitters"]),
+    # a user's own extra-options list is left as the only one
+    ("--xla_backend_extra_options=xla_cpu_disable_slp_vectorizer", "",
+     ["--xla_backend_extra_options=xla_cpu_disable_slp_vectorizer",
+      "--xla_cpu_enable_concurrency_optimized_scheduler=false"]),
+    ("--xla_force_host_platform_device_count=2", "1", ["--xla_force_host_platform_device_count=2"]),
+])
+def test_import_sets_the_xla_cpu_flags_unless_told_not_to(given, keep, expect):
+    """`import hexjax` adds its two XLA:CPU settings (hexjax/__init__.py, docs/modelling.md) to the user's XLA_FLAGS,
+    keeps a user's own `xla_backend_extra_options`, and leaves XLA_FLAGS alone with HEXJAX_KEEP_XLA_FLAGS=1."""
+    env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "HEXJAX_KEEP_XLA_FLAGS")}
+    env.update(XLA_FLAGS=given, HEXJAX_CACHE_DIR="off")
+    if keep:
+        env["HEXJAX_KEEP_XLA_FLAGS"] = keep
+    r = subprocess.run([sys.executable, "-c", _FLAGS], capture_output=True, text=True, timeout=60, env=env)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert sorted(r.stdout.split()) == sorted(expect)
 
 
 # A toy suite run under tests/conftest.py's scheduler with two workers, in which two tests kill their worker: the
