@@ -13,18 +13,10 @@ from hexjax import cache as _cache
 # block_until_ready forever: 3 of 5 runs on 2 cores with jax 0.10.2. Neither async dispatch off,
 # single-threaded Eigen, nor replacing lax.top_k cured it; this flag did. It must be set before jax
 # creates its CPU client; HEXJAX_KEEP_XLA_FLAGS=1 leaves XLA_FLAGS untouched.
-#
-# XLA:CPU's newer MLIR fusion emitters compile each fused kernel through an extra MLIR pipeline; MJX programs
-# hold thousands of small kernels, so that pipeline is a large share of their compile. The older LLVM IR
-# emitters compile them in less time and, on the rollouts measured, run them faster (docs/benchmarks.md,
-# 2026-11-26). Values agree to float32 rounding. Backends other than XLA:CPU ignore the option.
 if not _os.environ.get("HEXJAX_KEEP_XLA_FLAGS"):
     _flags = _os.environ.get("XLA_FLAGS", "")
     if "xla_cpu_enable_concurrency_optimized_scheduler" not in _flags:
-        _flags += " --xla_cpu_enable_concurrency_optimized_scheduler=false"
-    if "xla_backend_extra_options" not in _flags:  # a user's own list is left as it is
-        _flags += " --xla_backend_extra_options=xla_cpu_disable_new_fusion_emitters"
-    _os.environ["XLA_FLAGS"] = _flags.strip()
+        _os.environ["XLA_FLAGS"] = (_flags + " --xla_cpu_enable_concurrency_optimized_scheduler=false").strip()
 
 
 # jaxlib 0.10.x split each batched LAPACK call (MJX's Cholesky, the implicit backward's solves) over XLA:CPU's

@@ -1,7 +1,13 @@
 import os
 
 # Two host devices so the sharded-rollout test has a real mesh to split over; set before jax loads.
-os.environ.setdefault("XLA_FLAGS", "--xla_force_host_platform_device_count=2")
+# XLA:CPU's older LLVM IR fusion emitters (TEST_XLA_FLAGS' second flag) compile the suite's MJX programs in about a
+# third less time than its default MLIR ones: 1,346 s of compile against 1,968 s in cold runs on one day. Values agree to
+# float32 rounding. hexjax itself keeps XLA's default: there the CPU gradient of `hexjax bench --grad` ran 25 %
+# slower with the older emitters (docs/modelling.md, docs/benchmarks.md 2026-11-26).
+TEST_XLA_FLAGS = ("--xla_force_host_platform_device_count={devices} "
+                  "--xla_backend_extra_options=xla_cpu_disable_new_fusion_emitters")
+os.environ.setdefault("XLA_FLAGS", TEST_XLA_FLAGS.format(devices=2))
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 
 

@@ -9,6 +9,8 @@ import sys
 
 import numpy as np
 
+from conftest import TEST_XLA_FLAGS
+
 SWEEP = ["robustness", "--controllers", "gait", "--terrain", "flat", "--axis", "friction=0.4,1.0", "--batch", "4",
          "--distance", "0.05", "--per-env"]
 
@@ -21,7 +23,7 @@ def _free_port() -> int:
 
 def _env(devices: int):
     env = dict(os.environ)
-    env["XLA_FLAGS"] = f"--xla_force_host_platform_device_count={devices}"
+    env["XLA_FLAGS"] = TEST_XLA_FLAGS.format(devices=devices)
     env["JAX_PLATFORMS"] = "cpu"
     return env
 

@@ -1,6 +1,6 @@
 """jaxlib's CPU runtime under concurrent batched LAPACK calls: with jaxlib 0.10.x (hexjax's pin until the sixth
 session of issue 19) they could wait on each other forever on a machine with few cores; the pinned jaxlib must
-not (hexjax/__init__.py). The XLA:CPU flags that `import hexjax` sets. The test scheduler survives a crashed
+not (hexjax/__init__.py). The XLA:CPU flag that `import hexjax` sets. The test scheduler survives a crashed
 worker."""
 
 import os
@@ -43,17 +43,16 @@ _FLAGS = "import os, hexjax; print(os.environ.get('XLA_FLAGS', ''))"
 
 
 @pytest.mark.parametrize("given,keep,expect", [
-    ("", "", ["--xla_cpu_enable_concurrency_optimized_scheduler=false",
-              "--xla_backend_extra_options=xla_cpu_disable_new_fusion_emitters"]),
-    # a user's own extra-options list is left as the only one
-    ("--xla_backend_extra_options=xla_cpu_disable_slp_vectorizer", "",
-     ["--xla_backend_extra_options=xla_cpu_disable_slp_vectorizer",
-      "--xla_cpu_enable_concurrency_optimized_scheduler=false"]),
+    ("", "", ["--xla_cpu_enable_concurrency_optimized_scheduler=false"]),
+    ("--xla_force_host_platform_device_count=2", "",
+     ["--xla_force_host_platform_device_count=2", "--xla_cpu_enable_concurrency_optimized_scheduler=false"]),
+    ("--xla_cpu_enable_concurrency_optimized_scheduler=true", "",
+     ["--xla_cpu_enable_concurrency_optimized_scheduler=true"]),
     ("--xla_force_host_platform_device_count=2", "1", ["--xla_force_host_platform_device_count=2"]),
 ])
-def test_import_sets_the_xla_cpu_flags_unless_told_not_to(given, keep, expect):
-    """`import hexjax` adds its two XLA:CPU settings (hexjax/__init__.py, docs/modelling.md) to the user's XLA_FLAGS,
-    keeps a user's own `xla_backend_extra_options`, and leaves XLA_FLAGS alone with HEXJAX_KEEP_XLA_FLAGS=1."""
+def test_import_adds_the_scheduler_flag_unless_told_not_to(given, keep, expect):
+    """`import hexjax` adds its XLA:CPU scheduler setting (hexjax/__init__.py, docs/modelling.md) to the user's
+    XLA_FLAGS, keeps a user's own choice of it, and leaves XLA_FLAGS alone with HEXJAX_KEEP_XLA_FLAGS=1."""
     env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "HEXJAX_KEEP_XLA_FLAGS")}
     env.update(XLA_FLAGS=given, HEXJAX_CACHE_DIR="off")
     if keep:
