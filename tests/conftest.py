@@ -1,8 +1,8 @@
 import os
 
 # Two host devices so the sharded-rollout test has a real mesh to split over; set before jax loads.
-# XLA:CPU's older LLVM IR fusion emitters (TEST_XLA_FLAGS' second flag) compile the suite's MJX programs in about a
-# third less time than its default MLIR ones: 1,346 s of compile against 1,968 s in cold runs on one day. Values agree to
+# XLA:CPU's older LLVM IR fusion emitters (TEST_XLA_FLAGS' second flag) compile the suite's MJX programs in a third
+# less time than its default MLIR ones: 1,346 s of compile against 1,968 s, cold runs on one day. Values agree to
 # float32 rounding. hexjax itself keeps XLA's default: there the CPU gradient of `hexjax bench --grad` ran 25 %
 # slower with the older emitters (docs/modelling.md, docs/benchmarks.md 2026-11-26).
 TEST_XLA_FLAGS = ("--xla_force_host_platform_device_count={devices} "
