@@ -20,6 +20,7 @@ from hexjax.control.gait import GaitController
 from hexjax.control.perceive_gait import PerceivingAvoidGait
 from hexjax.control.tactile import TactileGaitController
 from hexjax.sim.config import PhysicsConfig, RolloutConfig, physics_for
+from hexjax.sim.mjcf import compile_mjcf
 from hexjax.sim.model import batch_model, sim_model
 from hexjax.sim.rollout import BACKENDS, make_mesh, rollout
 from hexjax.perceive.sensors import get_sensor
@@ -38,11 +39,9 @@ def mujoco_c_steps_per_s(robot: str, terrain: str, physics: PhysicsConfig, secon
     """Single-thread mj_step rate on the same MJCF, slots placed on a sampled terrain, gait running."""
     spec = get_robot(robot)
     sm = sim_model(spec, physics)
-    m = mujoco.MjModel.from_xml_string(sm.xml)
+    m = compile_mjcf(sm.xml)  # its ground plane follows the terrain's ground_z
     mx, _ = batch_model(sm, sample(get_terrain(terrain), jax.random.PRNGKey(0), 1))
     m.geom_pos[:] = np.asarray(mx.geom_pos[0])
-    # the plane follows the terrain's ground_z only if MuJoCo reads its geom_pos (hexjax.sim.backends.mujoco_c)
-    m.geom_sameframe[sm.ground_geom] = mujoco.mjtSameFrame.mjSAMEFRAME_NONE
     m.geom_size[:] = np.asarray(mx.geom_size[0])
     d = mujoco.MjData(m)
     mujoco.mj_resetDataKeyframe(m, d, 0)

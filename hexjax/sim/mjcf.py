@@ -165,3 +165,16 @@ def build_mjcf(spec: RobotSpec, physics: PhysicsConfig, *, contact_sensors: bool
   </keyframe>
 </mujoco>
 """
+
+
+def compile_mjcf(xml: str):
+    """An MjModel of `build_mjcf`'s XML whose ground plane follows later writes to its geom_pos.
+
+    Compiled at the world frame's origin, the plane is marked as sharing its body's frame (geom_sameframe), and
+    MuJoCo's mj_kinematics then places it there whatever geom_pos says: a model that moves the plane per env to
+    the terrain's ground_z (the MuJoCo C backend, the bench's mj_step reference) kept it at z = 0, which filled
+    Yu 2019's ditches and the lowered terrain families. MJX does not read the flag; its models are unchanged."""
+    import mujoco
+    m = mujoco.MjModel.from_xml_string(xml)
+    m.geom_sameframe[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, "ground")] = mujoco.mjtSameFrame.mjSAMEFRAME_NONE
+    return m

@@ -34,7 +34,7 @@ from mujoco import rollout as mj_rollout
 
 from hexjax.sim import perturb
 from hexjax.sim.config import PhysicsConfig, RolloutConfig, SensorConfig
-from hexjax.sim.mjcf import PARKED_Z, build_mjcf, sensor_layout
+from hexjax.sim.mjcf import PARKED_Z, build_mjcf, compile_mjcf, sensor_layout
 from hexjax.sim.model import actuator_forces, obs_from_sensordata
 from hexjax.sim.perturb import MIN_FRICTION
 from hexjax.sim.step import Summary, accumulate, end_pose, init_acc, settle_steps, substeps
@@ -60,19 +60,15 @@ class _Template:
 @functools.lru_cache(maxsize=4)
 def _template(robot: RobotSpec, physics: PhysicsConfig, n_boxes: int) -> _Template:
     phys = dataclasses.replace(physics, slots_per_leg=0, torso_slots=0)
-    m = mujoco.MjModel.from_xml_string(build_mjcf(robot, phys, contact_sensors=True, terrain_boxes=n_boxes))
+    # the ground plane moves with each env's ground_z (`_models` writes its geom_pos): see `compile_mjcf`
+    m = compile_mjcf(build_mjcf(robot, phys, contact_sensors=True, terrain_boxes=n_boxes))
     gid = lambda n: mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, n)
     key = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_KEY, "stance")
     assert m.nsensordata == sensor_layout()["size"]
     bodies = np.array([mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, f"terrain_{j}") for j in range(n_boxes)], dtype=int)
-    # the ground plane moves with each env's ground_z (`_models` writes its geom_pos); compiled at the world
-    # frame's origin it is marked as sharing that frame, and mj_kinematics then ignores geom_pos: the plane
-    # stayed at z = 0 and filled Yu 2019's ditches and the lowered families (stairs-down, slope-down, stones)
-    ground = gid("ground")
-    m.geom_sameframe[ground] = mujoco.mjtSameFrame.mjSAMEFRAME_NONE
     return _Template(model=m, box_geoms=np.array([gid(f"terrain_{j}") for j in range(n_boxes)], dtype=int),
                      box_bodies=bodies, box_bvh=np.asarray(m.body_bvhadr[bodies], dtype=int),
-                     ground_geom=ground,
+                     ground_geom=gid("ground"),
                      torso_body=mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, "torso"),
                      qpos0=np.array(m.key_qpos[key]), ctrl0=np.array(m.key_ctrl[key]),
                      nstate=mujoco.mj_stateSize(m, _FULL), pool=[])
