@@ -4,10 +4,11 @@ import os
 # XLA:CPU's older LLVM IR fusion emitters (TEST_XLA_FLAGS' second flag) compile the suite's MJX programs in a third
 # less time than its default MLIR ones: 1,346 s of compile against 1,968 s, cold runs on one day. Values agree to
 # float32 rounding. hexjax itself keeps XLA's default: there the CPU gradient of `hexjax bench --grad` ran 25 %
-# slower with the older emitters (docs/modelling.md, docs/benchmarks.md 2026-11-26). They also write a scan's
-# stacked outputs (`lax.scan`'s ys) by rewriting the whole stack at every step, so a scan of n steps costs n^2:
-# a recorded MJX walk of 987 control steps ran 23.4 s against 13.6 s, 120 s of the Van der Pol network 15.8 s
-# against 0.03 s. Tests that stack thousands of steps split them into chunks (tests/test_vdp.py `_run`).
+# slower with the older emitters (docs/modelling.md, docs/benchmarks.md 2026-11-26). They also write a fused
+# dynamic-update-slice's whole output, not its slice: a scan of n steps that stacks its outputs (`lax.scan`'s ys)
+# costs n^2 (120 s of the Van der Pol network 15.8 s against 0.03 s), and MJX's elliptic-cone solve runs twice as
+# long (the perturbed walks: 19.8 s against 9.9 s). Tests that stack thousands of steps split them into chunks
+# (tests/test_vdp.py `_run`).
 TEST_XLA_FLAGS = ("--xla_force_host_platform_device_count={devices} "
                   "--xla_backend_extra_options=xla_cpu_disable_new_fusion_emitters")
 os.environ.setdefault("XLA_FLAGS", TEST_XLA_FLAGS.format(devices=2))
