@@ -2,10 +2,15 @@
 zero, huge, NaN and infinite values) either load and run a tiny rollout with finite results, or fail with one
 ValueError line. Any other exception, a multi-line error, a non-finite result or a hang fails the test.
 
-The tiny rollouts go through the MuJoCo C backend with JAX's jit off: every mutated robot is a new static
-configuration, and compiling an MJX program for each would take the suite hours; the control step, sensors,
-accumulators and checks are the same code either way."""
+The tiny rollouts go through the MuJoCo C backend. For mutated robots JAX's jit is off: every mutated robot is a
+new static configuration, and compiling a program for each would cost more than running it eagerly; the control
+step, sensors, accumulators and checks are the same code either way. Mutated terrains and tuning configs keep
+the jit on: a mutation seldom leaves them with another valid controller or robot, so the controller step
+compiles a few times (per box count, or per such config) and the compilation cache keeps it. Warm runs on 2 cores, eager against
+jitted: high-small 5.6 s against 1.8 s, waves 5.5 against 0.9, tactile_tripod 10.4 against 2.5; a config gives
+the same outcome either way (the 40 high-small examples, one process, both modes)."""
 
+import contextlib
 import copy
 import math
 import signal
@@ -71,8 +76,9 @@ def _alarm(*_):
     raise _Hang("took over 120 s")
 
 
-def _check(tmp_path, doc, load, run):
-    """Write `doc`, load it: a ValueError must be one line; a config that loads must run finite."""
+def _check(tmp_path, doc, load, run, jit=False):
+    """Write `doc`, load it: a ValueError must be one line; a config that loads must run finite (eagerly unless
+    `jit`)."""
     path = tmp_path / "fuzzed.yaml"
     path.write_text(yaml.safe_dump(doc))
     old = signal.signal(signal.SIGALRM, _alarm)
@@ -84,7 +90,7 @@ def _check(tmp_path, doc, load, run):
             assert "\n" not in str(err) and str(err), repr(err)
             return "rejected"
         try:
-            with jax.disable_jit():
+            with (contextlib.nullcontext() if jit else jax.disable_jit()):
                 s = run(spec)
         except ValueError as err:  # a check of the rollout before it starts: still one line
             assert "\n" not in str(err) and str(err), repr(err)
@@ -140,7 +146,7 @@ def test_fuzzed_configs_load_and_run_or_fail_in_one_line(tmp_path, kind, base, l
     @settings(max_examples=n, **SETTINGS)
     @given(mutated(doc0))
     def one(doc):
-        seen.append(_check(tmp_path, doc, load, run))
+        seen.append(_check(tmp_path, doc, load, run, jit=kind in ("terrain", "tune")))
 
     one()
     counts = {k: seen.count(k) for k in set(seen)}
