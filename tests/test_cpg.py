@@ -225,6 +225,43 @@ def test_smooth_form_tends_to_hard_form():
     assert errs[-1] < errs[0]
 
 
+def test_straight_through_form_is_the_hard_controller_with_the_sigmoid_slope():
+    """`straight_through=True` with the `smooth` param on (`hexjax.control.gates`): over the search-and-wall walk
+    of the test above its states equal the hard controller's bit for bit, while reverse mode sees each gate's
+    sigmoid. One step with the right front foot pushed back by 0.3 N more than F_contact-x: the obstacle
+    neuron reads 1 (the hard value; the smooth form reads sigmoid(0.3) = 0.57), and its derivative with
+    respect to F_contact-x is -sigmoid'(0.3 / T) / T, where the hard form's is 0."""
+    z0 = -(ROBOT.hip_height - ROBOT.foot_radius) + 0.002
+    hard, st = CPGController(ROBOT), CPGController(ROBOT, smooth=True, straight_through=True)
+    p, ps = hard.default_params(), st.default_params()
+    assert float(ps.smooth) == 1.0
+    wall_x = jnp.full(6, 10.0).at[1].set(0.5 * float(p.step_length) - 0.01)
+    wall_top = jnp.full(6, -10.0).at[1].set(z0 + 0.04)
+    a = _walk(hard, p, 25.0, z0, _rf(-0.018), 3.0, wall_x=wall_x, wall_top=wall_top)
+    b = _walk(st, ps, 25.0, z0, _rf(-0.018), 3.0, wall_x=wall_x, wall_top=wall_top)
+    assert int(np.asarray(a.n_elev).max()) >= 1 and int(np.asarray(a.n_search).max()) >= 1  # both events happen
+    for name, x, y in zip(a.__dataclass_fields__, jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y), err_msg=name)
+
+    force = jnp.zeros((6, 3)).at[RF, 0].set(-(float(p.f_contact[1]) + 0.3)).at[:, 2].set(15.0)
+    s0 = hard.init(p, None)
+    obs = Obs(qpos=s0.q_cmd.reshape(-1), qvel=jnp.zeros(18), torso_pos=jnp.zeros(3),
+              torso_quat=jnp.array([1.0, 0.0, 0.0, 0.0]), foot_force=force, foot_contact=jnp.ones(6, bool),
+              tactile_force=jnp.zeros(6), tactile=jnp.zeros(6, bool), time=jnp.float32(0.0))
+
+    def lam_ob(ctrl, params, fc):
+        return ctrl.step(params.replace(f_contact=fc), s0, obs)[0].lam_ob[RF]
+
+    fc = p.f_contact
+    assert float(lam_ob(st, ps, fc)) == 1.0 and float(lam_ob(hard, p, fc)) == 1.0
+    assert abs(float(lam_ob(CPGController(ROBOT, smooth=True), ps, fc)) - float(jax.nn.sigmoid(0.3))) < 1e-3
+    temp = float(p.temp_force)
+    sig = float(jax.nn.sigmoid(0.3 / temp))
+    g_st = np.asarray(jax.grad(lambda f: lam_ob(st, ps, f))(fc))
+    np.testing.assert_allclose(g_st, [0.0, -sig * (1 - sig) / temp, 0.0], rtol=1e-4, atol=1e-7)
+    assert np.all(np.asarray(jax.grad(lambda f: lam_ob(hard, p, f))(fc)) == 0.0)
+
+
 def test_bad_params_raise_before_tracing():
     ctrl = CPGController(ROBOT)
     p = ctrl.default_params()

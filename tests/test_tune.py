@@ -182,6 +182,7 @@ def test_cli_tune_rejects_bad_configs(capsys):
                       (["params={wing_span: {min: 0, max: 1}}"], "params.wing_span: unknown parameter"),
                       (["params={overcome_height: {min: 0.1, max: 0.02}}"], "min=0.1 must be < max=0.02"),
                       (["solver_iterations=0"], "tune.solver_iterations=0"),
+                      (["gates=soft"], "tune.gates='soft'"),
                       (["steps"], "use key=value")):
         rc = main(["tune", "--config", "tactile_tripod"] + sum([["--set", s] for s in sets], []))
         assert rc == 2

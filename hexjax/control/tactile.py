@@ -21,7 +21,8 @@ set down while the body walks on). With l_k = l_i the trajectory is Eq. 2-4 exac
 
 Hard and smooth forms: the switch for a step is the gate g in {0, 1} (hard: the largest pad force seen
 during the previous step exceeds `tactile_threshold`) or sigmoid((force - threshold) / temperature)
-(smooth); the step's landing point and height are l_i / 2 + g (l_k - l_i) and h_i + g (h_k - h_i). The
+(smooth), or the hard value with the sigmoid's derivative (`straight_through`, `hexjax.control.gates`);
+the step's landing point and height are l_i / 2 + g (l_k - l_i) and h_i + g (h_k - h_i). The
 params field `enable` multiplies g, so runs with and without the method share one compiled rollout.
 """
 
@@ -37,6 +38,7 @@ import numpy as np
 from flax import struct
 
 from hexjax.control.gait import PatternClock, check_open_ranges
+from hexjax.control.gates import sigmoid_gate
 from hexjax.world.robot import N_LEGS, RobotSpec, body_to_leg, leg_ik, neutral_feet_body
 
 
@@ -81,8 +83,9 @@ class TactileGaitController(PatternClock):
 
     robot: RobotSpec; gait: 'tripod' or 'wave'; max_obstacle_height: H of Eq. 7 (m), the one thing the
     method assumes known; step_height: h_i (m); dt: control period (s); smooth: differentiable gate;
-    n_cycles: stop after this many gait cycles (None: walk on). Start and stop ramps as in
-    `GaitController`: the horizontal stroke grows from 0 over the first cycle and shrinks over the last."""
+    straight_through: with `smooth`, the gate keeps the hard value and takes the sigmoid's derivative
+    (`hexjax.control.gates`); n_cycles: stop after this many gait cycles (None: walk on). Start and stop
+    ramps as in `GaitController`: the horizontal stroke grows from 0 over the first cycle and shrinks over the last."""
 
     robot: RobotSpec
     gait: str = "tripod"
@@ -90,10 +93,13 @@ class TactileGaitController(PatternClock):
     step_height: float = 0.03
     dt: float = 0.02
     smooth: bool = False
+    straight_through: bool = False
     n_cycles: int | None = None
 
     def __post_init__(self):
         self._check_gait_and_dt()
+        if self.straight_through and not self.smooth:
+            raise ValueError("straight_through=True needs smooth=True: it changes the smooth gate's derivative")
         if not (math.isfinite(self.max_obstacle_height) and 0 <= self.max_obstacle_height <= 0.2):
             raise ValueError(f"max_obstacle_height={self.max_obstacle_height!r}: must be in [0, 0.2] m")
         if not (math.isfinite(self.step_height) and 0 < self.step_height <= 0.15):
@@ -152,7 +158,7 @@ class TactileGaitController(PatternClock):
 
     def _gate(self, params, force):
         x = force - params.tactile_threshold
-        g = jax.nn.sigmoid(x / params.temperature) if self.smooth else (x > 0).astype(force.dtype)
+        g = sigmoid_gate(x, params.temperature, self.straight_through) if self.smooth else (x > 0).astype(force.dtype)
         return params.enable * g
 
     def foot_offsets(self, params: TactileParams, t, gate, gate_prev):

@@ -15,6 +15,7 @@ from hexjax.world.presets import get_terrain
 OBJECTIVE_TERMS = ("dx", "dy", "dalpha", "fall", "energy")
 OPTIMIZERS = ("adam", "sgd")
 ESTIMATORS = ("first_order", "hybrid")
+GATES = ("smooth", "straight_through")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -36,6 +37,9 @@ class TuneConfig:
     # smooth-gate temperature: the tactile pad gate (N), or the CPG's force gate temp_force (N); None keeps
     # the controller's own default (tactile 0.05, CPG 1 N with temp_phase 0.05 and temp_height 2 mm)
     temperature: Optional[float] = None
+    # the training rollout's gates (`hexjax.control.gates`): 'smooth' sigmoids, or 'straight_through': the hard
+    # controller that evaluation runs, with the sigmoids' derivatives in reverse mode
+    gates: str = "smooth"
     # MJX Newton iterations of both the training and the evaluation physics (None: PhysicsConfig's 2). The
     # CPG on `yu2019` needs 4 for gradients that agree with finite differences (docs/tuning.md)
     solver_iterations: Optional[int] = None
@@ -87,6 +91,8 @@ class TuneConfig:
                                  f"({len(self.terrains)} terrains)")
         if self.es_objective not in ("smooth", "hard"):
             raise ValueError(f"tune.es_objective={self.es_objective!r}: use 'smooth' or 'hard'")
+        if self.gates not in GATES:
+            raise ValueError(f"tune.gates={self.gates!r}: use one of {GATES}")
         if self.estimator not in ESTIMATORS:
             raise ValueError(f"tune.estimator={self.estimator!r}: use one of {ESTIMATORS}")
         if not (isinstance(self.zo_pairs, int) and not isinstance(self.zo_pairs, bool) and self.zo_pairs >= 1):

@@ -45,6 +45,8 @@ def config_digest(cfg: TuneConfig, method: str) -> str:
         drop.append("es_objective")
     if method != "grad" or not cfg.unroll_substeps:  # digests from before the key hold
         drop.append("unroll_substeps")
+    if cfg.gates == "smooth":  # likewise
+        drop.append("gates")
     for k in drop:
         d.pop(k)
     return hashlib.sha256(json.dumps([method, d], sort_keys=True, default=str).encode()).hexdigest()[:16]

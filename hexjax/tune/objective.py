@@ -11,7 +11,9 @@ state, E the joint energy (J). The batch objective is the mean over envs. With w
 term is the paper's goal error (its "relative error" times the distance).
 
 Two forms of the same rollout:
-- training ("smooth"): sigmoid gates (the tactile switch, the CPG's FSM), the same physics as evaluation
+- training ("smooth"): sigmoid gates (the tactile switch, the CPG's FSM), or with `gates: straight_through`
+  the hard gates in value and the sigmoids' derivatives in reverse mode (`hexjax.control.gates`: the training
+  rollout is then the held-out kind of rollout on the training terrains), the same physics as evaluation
   with a reverse-mode path through MJX's constraint solve (`RolloutConfig.solver_grad`: its Newton iterations
   traced as a scan, or implicit differentiation at the solution), a per-step bound on
   the backward flow through the physics (`RolloutConfig.grad_clip`), and truncated windows
@@ -175,8 +177,10 @@ class Problem:
 
 def _controller(cfg: TuneConfig, robot, smooth: bool):
     """(controller, starting params = the papers' hand rules, rollout seconds)."""
+    st = smooth and cfg.gates == "straight_through"
     if cfg.controller == "tactile":
-        c = TactileGaitController(robot, gait=cfg.gait, max_obstacle_height=cfg.max_obstacle_height, smooth=smooth)
+        c = TactileGaitController(robot, gait=cfg.gait, max_obstacle_height=cfg.max_obstacle_height, smooth=smooth,
+                                  straight_through=st)
         ncyc, dur = c.duration_for(cfg.distance)
         c = dataclasses.replace(c, n_cycles=ncyc)
         p = c.default_params()
@@ -186,7 +190,7 @@ def _controller(cfg: TuneConfig, robot, smooth: bool):
             hi = dict(cfg.space().bounds)["swing_time"].hi
             dur = dur * hi / float(p.swing_time)
         return c, p, dur
-    c = CPGController(robot, gait=cfg.gait, smooth=smooth)
+    c = CPGController(robot, gait=cfg.gait, smooth=smooth, straight_through=st)
     p = c.default_params()
     if cfg.temperature is not None:
         p = p.replace(temp_force=jnp.float32(cfg.temperature))

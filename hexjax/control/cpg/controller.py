@@ -15,6 +15,7 @@ from hexjax.control.base import Controller
 from hexjax.control.cpg.converter import (LinearConverter, converter_output, converter_points, linear_converter,
                                           quat_to_body, search_output)
 from hexjax.control.cpg.params import CPG_GAITS, CPGParams, CPGState, gait_fields
+from hexjax.control.gates import sigmoid_gate
 from hexjax.control.vdp import NetworkParams, locked_state, network_rhs, rk4_step
 from hexjax.world.robot import N_LEGS, RobotSpec, leg_fk, leg_ik, leg_to_body
 
@@ -30,7 +31,9 @@ class CPGController(Controller):
     network is integrated with one RK4 step per period); feedback: False runs the bare network and
     converter blind (no FSM, no reflexes); elevator / searching: enable each reflex (these three set the
     default params of the same names, which the step reads: one program serves every variant); smooth: sigmoid
-    gates instead of step functions (likewise a param); search_periods: how many slowed leader periods a search lasts before the
+    gates instead of step functions (likewise a param); straight_through: with the smooth param on, each
+    gate keeps the step function's value and takes the sigmoid's derivative (`hexjax.control.gates`: the
+    hard rollout, differentiable); search_periods: how many slowed leader periods a search lasts before the
     leg gives up (4 reach 50 mm below the AEP on `yu2019`; the first alone 21 mm); follower_reset: see
     `hexjax.control.cpg`. step_length, clearance (h_max), elevated_clearance (m) set the default params: 40 and
     80 mm are Sect. 6.1.1's; the paper gives no stride for its virtual model, 70 mm keeps neighbouring feet
@@ -45,6 +48,7 @@ class CPGController(Controller):
     elevator: bool = True
     searching: bool = True
     smooth: bool = False
+    straight_through: bool = False
     follower_reset: bool = True
     search_periods: int = 4
     step_length: float = 0.07
@@ -57,6 +61,8 @@ class CPGController(Controller):
             raise ValueError(f"cpg.gait={self.gait!r}: choose one of {sorted(CPG_GAITS)}")
         if not (0 < self.dt <= 0.05):
             raise ValueError(f"cpg.dt={self.dt!r}: must be in (0, 0.05] s")
+        if self.straight_through and not self.smooth:
+            raise ValueError("cpg.straight_through=True needs smooth=True: it changes the smooth form's derivative")
         if self.search_periods < 1:
             raise ValueError(f"cpg.search_periods={self.search_periods!r}: must be >= 1")
         if not (math.isfinite(self.stance_radial) and self.stance_radial > 0):
@@ -131,10 +137,12 @@ class CPGController(Controller):
                         f"AEP/PEP/apex are out of reach of robot {self.robot.name!r}")
 
     # Gates ----------------------------------------------------------------------------------------
-    @staticmethod
-    def _gate(x, temp, smooth):
-        """1 where x > 0: a step in the hard form (`smooth` param 0), sigmoid(x / temp) in the smooth one (1)."""
-        return jnp.where(smooth > 0.5, jax.nn.sigmoid(x / temp), (x > 0).astype(x.dtype))
+    def _gate(self, x, temp, smooth):
+        """1 where x > 0: a step in the hard form (`smooth` param 0), sigmoid(x / temp) in the smooth one (1), or
+        with `straight_through` the step in value and the sigmoid in reverse mode (`hexjax.control.gates`)."""
+        on = smooth > 0.5
+        soft = sigmoid_gate(x, temp, self.straight_through)
+        return jnp.where(on, soft, (x > 0).astype(x.dtype))
 
     # Network frequencies (Eqs. 12, 16) ----------------------------------------------------------------
     @staticmethod
