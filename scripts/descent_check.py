@@ -19,9 +19,9 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
-import yaml
 from jax.flatten_util import ravel_pytree
 
+from hexjax.experiments.tuning import parse_sets
 from hexjax.tune.config import load_tune_config
 from hexjax.tune.objective import Problem, per_env_objective
 
@@ -29,21 +29,19 @@ from hexjax.tune.objective import Problem, per_env_objective
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--config", default="cpg_step_ditch", help="tuning config (configs/tune/) or .yaml path")
-    ap.add_argument("--set", action="append", default=[], help="override a config key, e.g. window=2.0")
+    ap.add_argument("--set", action="append", default=[], help="override a config key, e.g. window=2.0 or optimizer.name=sgd")
     ap.add_argument("--batches", type=int, default=3, help="training batches whose gradients are averaged")
     ap.add_argument("--steps", default="0,0.05,0.1,0.2,-0.1", help="steps a along -g / max|g| (comma list)")
     ap.add_argument("--json", help="write the result here")
     o = ap.parse_args(argv)
-    overrides = {}
-    for s in o.set:
-        if "=" not in s:
-            raise SystemExit(f"--set {s!r}: use key=value")
-        k, v = s.split("=", 1)
-        overrides[k] = yaml.safe_load(v)
+    try:  # as `hexjax tune --set` reads them (dotted keys update a dict key)
+        overrides = parse_sets(o.set)
+    except ValueError as err:
+        raise SystemExit(str(err)) from None
     if o.batches < 1:
         raise SystemExit(f"--batches={o.batches}: must be >= 1")
     steps = [float(a) for a in o.steps.split(",")]
-    cfg = load_tune_config(o.config, overrides)
+    cfg = load_tune_config(o.config, overrides, merge=True)
     pb = Problem.build(cfg)
     u0 = pb.space.init(pb.params0)
     flat, unravel = ravel_pytree(u0)

@@ -38,7 +38,7 @@ import numpy as np
 from flax import struct
 
 from hexjax.control.gait import PatternClock, check_open_ranges
-from hexjax.control.gates import sigmoid_gate
+from hexjax.control.gates import hard_gate, sigmoid_gate
 from hexjax.world.robot import N_LEGS, RobotSpec, body_to_leg, leg_ik, neutral_feet_body
 
 
@@ -158,7 +158,7 @@ class TactileGaitController(PatternClock):
 
     def _gate(self, params, force):
         x = force - params.tactile_threshold
-        g = sigmoid_gate(x, params.temperature, self.straight_through) if self.smooth else (x > 0).astype(force.dtype)
+        g = sigmoid_gate(x, params.temperature, self.straight_through) if self.smooth else hard_gate(x)
         return params.enable * g
 
     def foot_offsets(self, params: TactileParams, t, gate, gate_prev):

@@ -15,7 +15,7 @@ from hexjax.control.base import Controller
 from hexjax.control.cpg.converter import (LinearConverter, converter_output, converter_points, linear_converter,
                                           quat_to_body, search_output)
 from hexjax.control.cpg.params import CPG_GAITS, CPGParams, CPGState, gait_fields
-from hexjax.control.gates import sigmoid_gate
+from hexjax.control.gates import hard_gate, sigmoid_gate
 from hexjax.control.vdp import NetworkParams, locked_state, network_rhs, rk4_step
 from hexjax.world.robot import N_LEGS, RobotSpec, leg_fk, leg_ik, leg_to_body
 
@@ -142,7 +142,7 @@ class CPGController(Controller):
         with `straight_through` the step in value and the sigmoid in reverse mode (`hexjax.control.gates`)."""
         on = smooth > 0.5
         soft = sigmoid_gate(x, temp, self.straight_through)
-        return jnp.where(on, soft, (x > 0).astype(x.dtype))
+        return jnp.where(on, soft, hard_gate(x))
 
     # Network frequencies (Eqs. 12, 16) ----------------------------------------------------------------
     @staticmethod
