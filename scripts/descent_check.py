@@ -23,7 +23,7 @@ from jax.flatten_util import ravel_pytree
 
 from hexjax.experiments.tuning import parse_sets
 from hexjax.tune.config import load_tune_config
-from hexjax.tune.objective import Problem, per_env_objective
+from hexjax.tune.objective import Problem, evaluate_held_out
 
 
 def main(argv=None) -> dict:
@@ -58,18 +58,15 @@ def main(argv=None) -> dict:
     g = np.mean(grads, 0)
     cos = [float(grads[i] @ grads[j] / (np.linalg.norm(grads[i]) * np.linalg.norm(grads[j]) + 1e-30))
            for i in range(len(grads)) for j in range(i + 1, len(grads))]
-    model_h, fn_h = pb.hard_rollout()
-    fn_h = jax.jit(fn_h)
-    sets = {w: pb.eval_batch(w) for w in ("held_out", "validation")}
+    model_h, fn_h = pb.eval_rollout()  # the tuner's own evaluation program (kept across processes)
     d = jnp.asarray(g / max(np.abs(g).max(), 1e-30))
     names = sorted(pb.space.names)
     res = {"config": o.config, "overrides": overrides, "fields_in_ravel_order": names, "gradient": g.tolist(),
            "training_J": losses, "cosines_between_batches": cos, "hard_J": {}}
     print("cosines between the batches' gradients:", np.round(cos, 3).tolist())
     for a in steps:
-        p = pb.space.apply(unravel(flat - a * d), pb.eval_params0)
-        js = {w: float(jnp.mean(per_env_objective(fn_h(model_h, p, t, k), cfg.distance, cfg.objective)))
-              for w, (t, k) in sets.items()}
+        u = unravel(flat - a * d)
+        js = {w: evaluate_held_out(pb, u, fn_h, model_h, w)["objective"] for w in ("held_out", "validation")}
         res["hard_J"][f"{a:g}"] = js
         print(f"a = {a:+.2f}: hard J held-out {js['held_out']:.4f}, validation {js['validation']:.4f}", flush=True)
     if o.json:
