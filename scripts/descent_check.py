@@ -7,7 +7,9 @@ rollout) on the held-out and the validation terrains at u0 - a g / max|g| for ea
 gates") has the measurements that chose the CPG preset's window with it.
 
     python scripts/descent_check.py --config cpg_step_ditch --set gates=straight_through --set window=2.0 \
-        --json docs/results/descent_cpg_st_w2.json
+        --set grad_clip=10 --json docs/results/descent_cpg_st_w2.json
+
+(`grad_clip=10`: the recorded JSON was taken when the bound per env was grad_clip x train_batch.)
 """
 
 from __future__ import annotations
@@ -46,7 +48,7 @@ def main(argv=None) -> dict:
     u0 = pb.space.init(pb.params0)
     flat, unravel = ravel_pytree(u0)
     model, fn = pb.train_rollout(grad=True)
-    vg = jax.jit(jax.value_and_grad(pb.loss_fn(fn, model), has_aux=True))
+    vg = jax.jit(pb.value_and_grad(fn, model))
     grads, losses = [], []
     for b in range(o.batches):
         terr, keys = pb.train_batch(100 + b)  # batches the tuner's first steps do not draw

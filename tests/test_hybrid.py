@@ -14,7 +14,8 @@ from hexjax.control.tactile import TactileGaitController
 from hexjax.tune.config import load_tune_config
 from hexjax.tune.driver import config_digest
 from hexjax.tune.hybrid import combine, per_env_estimates
-from hexjax.tune.objective import Problem, per_env_objective
+from hexjax.sim.grad import clip_cotangent
+from hexjax.tune.objective import Problem, mean_value_and_grad, per_env_objective
 from hexjax.tune.space import load_values, make_space, with_values
 from hexjax.world.presets import luneckas2020
 
@@ -54,6 +55,31 @@ def _fake_problem(weights):
         return types.SimpleNamespace(travel=jnp.stack([x, zeros, zeros], -1), start_pose=jnp.zeros((n, 3)),
                                      energy=zeros, fell=zeros > 1, nan=zeros > 1)
     return problem, fn
+
+
+def test_grad_clip_bounds_each_env_whatever_the_batch():
+    """The first-order tuner's gradient (`mean_value_and_grad`) is the mean of the envs' own gradients, each with
+    `RolloutConfig.grad_clip`'s per-step bound acting on that env's cotangent: the same at any batch size, and the
+    same per-env bound as the hybrid's (a batch of one). A toy 'rollout' per env: x = a u, bounded at 1 on the
+    way back, J = x^2. Differentiating the mean instead bounds each env at B, so its gradient changes with B."""
+    bound = 1.0
+
+    def per_env(u, a):
+        x = clip_cotangent(a * u, bound)
+        return jnp.sum(x ** 2)
+
+    loss = lambda u, a: (lambda j: (jnp.mean(j), j))(jax.vmap(per_env, (None, 0))(u, a))
+    u = jnp.array([0.3, -0.2])
+    a = jnp.array([2.0, 0.1, 5.0])  # the first and third envs' cotangents 2x = 2a^2 u exceed the bound
+    own = np.stack([np.asarray(jax.grad(per_env)(u, ai)) for ai in a])  # each env alone: bound binds
+    assert np.linalg.norm(2 * np.asarray(a[0] * u)) > bound  # the bound does bind for env 0
+    vg = jax.jit(mean_value_and_grad(loss))
+    for reps in (1, 2, 8):
+        (m, j), g = vg(u, jnp.tile(a, reps))
+        np.testing.assert_allclose(np.asarray(g), own.mean(0), rtol=1e-6)
+        np.testing.assert_allclose(float(m), float(np.mean(j)), rtol=1e-6)
+    naive = [np.asarray(jax.grad(lambda u, a: loss(u, a)[0])(u, jnp.tile(a, r))) for r in (1, 8)]
+    assert np.linalg.norm(naive[1] - naive[0]) > 0.1 * np.linalg.norm(naive[0])
 
 
 def test_estimates_pair_each_env_with_itself_and_fit_the_whole_walk():

@@ -61,11 +61,10 @@ def physics_steps(problem: Problem, duration: float | None = None) -> int:
 def objective_program(problem: Problem, grad: bool, duration: float | None = None,
                       settle_time: float | None = None):
     """The jitted program timed: the smooth training objective (u, terrain, keys) -> (mean J, per-env J), or with
-    `grad` its `value_and_grad` through the gradient rollout (`Problem.train_rollout`, which reads `duration` and
-    `settle_time`). Also what scripts/compile_probe.py and scripts/profile_grad.py compile."""
+    `grad` its `Problem.value_and_grad` through the gradient rollout (`Problem.train_rollout`, which reads
+    `duration` and `settle_time`). Also what scripts/compile_probe.py and scripts/profile_grad.py compile."""
     model, fn = problem.train_rollout(grad=grad, duration=duration, settle_time=settle_time)
-    loss = problem.loss_fn(fn, model)
-    return jax.jit(jax.value_and_grad(loss, has_aux=True) if grad else loss)
+    return jax.jit(problem.value_and_grad(fn, model) if grad else problem.loss_fn(fn, model))
 
 
 def bench_grad(tune: str = "tactile_tripod", batches: Sequence[int] = (64,),

@@ -62,7 +62,9 @@ class RolloutConfig:
     fall_height: float = 0.03  # torso centre closer than this to the ground plane counts as a fall, m
     record: bool = False  # keep a per-control-step torso trace (B, T, 4): x, y, z, yaw
     # Reverse mode only: bound the norm of the gradient flowing back through the physics and controller
-    # state at every control step (None: exact gradients). Gradients through stiff contacts grow ~100x per 0.1 s and
+    # state at every control step, per env under vmap (None: exact gradients). It bounds the cotangent the env
+    # receives: differentiate a sum over envs, not a mean, or the bound loosens with the batch
+    # (`hexjax.tune.objective.mean_value_and_grad`). Gradients through stiff contacts grow ~100x per 0.1 s and
     # overflow within a second; a per-step bound keeps them finite and their direction local.
     grad_clip: Optional[float] = None
     # Reverse mode only: truncated gradients. Every `grad_window` control steps the physics and controller

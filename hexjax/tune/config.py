@@ -33,7 +33,9 @@ class TuneConfig:
     distance: float = 1.0
     horizon: float = 10.0  # s walked by controllers without a planned stop (cpg); the tactile gait walks `distance`
     window: float = 0.2  # s: truncated-gradient window (`RolloutConfig.grad_window`)
-    grad_clip: float = 1.0  # bound on the backward flow through each control step (`RolloutConfig.grad_clip`)
+    # bound on each env's backward flow through each control step (`RolloutConfig.grad_clip`), in units of
+    # that env's own objective, whatever train_batch (`objective.mean_value_and_grad`)
+    grad_clip: float = 1.0
     # smooth-gate temperature: the tactile pad gate (N), or the CPG's force gate temp_force (N); None keeps
     # the controller's own default (tactile 0.05, CPG 1 N with temp_phase 0.05 and temp_height 2 mm)
     temperature: Optional[float] = None

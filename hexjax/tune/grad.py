@@ -54,7 +54,7 @@ def tune(cfg: TuneConfig, out_dir: str, resume: bool = True, progress: bool = Tr
         per_step = cfg.train_batch * (1 + 2 * cfg.zo_pairs)
     else:
         model, fn = problem.train_rollout(grad=True)
-        loss_vg = cached(digest + "/vg", lambda: jax.jit(jax.value_and_grad(problem.loss_fn(fn, model), has_aux=True)),
+        loss_vg = cached(digest + "/vg", lambda: jax.jit(problem.value_and_grad(fn, model)),
                          problem.static("grad/vg", digest))
         vg = lambda u, terr, keys, key: loss_vg(u, terr, keys)
         zo_key, per_step = None, cfg.train_batch

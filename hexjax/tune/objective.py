@@ -174,6 +174,33 @@ class Problem:
             return jnp.mean(j), j
         return loss
 
+    def value_and_grad(self, fn, model):
+        """f(u, terrain, keys) -> ((mean J, per-env J), d mean J / du) through the gradient rollout (fn, model) of
+        `train_rollout(grad=True)`, with `grad_clip` bounding each env's own cotangent (`mean_value_and_grad`)."""
+        return mean_value_and_grad(self.loss_fn(fn, model))
+
+
+def mean_value_and_grad(loss):
+    """value_and_grad of the batch mean of `loss(u, ...) -> (mean J, J per env)`, taken as the gradient of the sum
+    of J divided by the batch size. Differentiating the mean itself would hand each env the cotangent 1/B, so a
+    bound on the backward flow per control step (`RolloutConfig.grad_clip`, applied per env under vmap) would
+    act on J_e / B: a bound of grad_clip x B in units of one env's objective, looser with every larger batch.
+    Through the sum every env starts from cotangent 1 and is bounded at grad_clip whatever the batch, as the
+    hybrid estimator's per-env gradients are (`hexjax.tune.hybrid.per_env_gradients`). Where no bound binds
+    the two are the same gradient, to float32 rounding."""
+    def total(u, *args):
+        _, j = loss(u, *args)
+        return jnp.sum(j), j
+
+    vg = jax.value_and_grad(total, has_aux=True)
+
+    def f(u, *args):
+        (_, j), g = vg(u, *args)
+        n = j.shape[0]
+        return (jnp.mean(j), j), jax.tree_util.tree_map(lambda x: x / n, g)
+
+    return f
+
 
 def _controller(cfg: TuneConfig, robot, smooth: bool):
     """(controller, starting params = the papers' hand rules, rollout seconds)."""
