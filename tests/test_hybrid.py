@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 
 from hexjax.control.tactile import TactileGaitController
+from hexjax.sim.grad import clip_cotangent
 from hexjax.tune.config import load_tune_config
 from hexjax.tune.driver import config_digest
 from hexjax.tune.hybrid import combine, per_env_estimates
-from hexjax.sim.grad import clip_cotangent
 from hexjax.tune.objective import Problem, mean_value_and_grad, per_env_objective
 from hexjax.tune.space import load_values, make_space, with_values
 from hexjax.world.presets import luneckas2020
@@ -70,8 +70,8 @@ def test_grad_clip_bounds_each_env_whatever_the_batch():
 
     loss = lambda u, a: (lambda j: (jnp.mean(j), j))(jax.vmap(per_env, (None, 0))(u, a))
     u = jnp.array([0.3, -0.2])
-    a = jnp.array([2.0, 0.1, 5.0])  # the first and third envs' cotangents 2x = 2a^2 u exceed the bound
-    own = np.stack([np.asarray(jax.grad(per_env)(u, ai)) for ai in a])  # each env alone: bound binds
+    a = jnp.array([2.0, 0.1, 5.0])  # the cotangent 2x = 2 a u exceeds the bound for the first and third
+    own = np.stack([np.asarray(jax.grad(per_env)(u, ai)) for ai in a])  # each env alone, bounded at 1
     assert np.linalg.norm(2 * np.asarray(a[0] * u)) > bound  # the bound does bind for env 0
     vg = jax.jit(mean_value_and_grad(loss))
     for reps in (1, 2, 8):
