@@ -3,8 +3,9 @@
 For one tuning config (configs/tune/*.yaml) and each batch size, times in one process
 - `forward`: the smooth training rollout and its objective, jitted (what a zeroth-order method like CMA-ES
   pays per batch), and
-- `grad-<solver_grad>`: `jax.value_and_grad` of the same objective through the gradient rollout (truncated
-  windows, per-step bound, remat; `hexjax.tune.objective.Problem.train_rollout`) with each way through MJX's
+- `grad-<solver_grad>`: the tuner's value and gradient of the same objective (`Problem.value_and_grad`)
+  through the gradient rollout (truncated windows, per-env per-step bound, remat;
+  `hexjax.tune.objective.Problem.train_rollout`) with each way through MJX's
   constraint solve (`RolloutConfig.solver_grad`: 'unrolled' Newton iterations or 'implicit' differentiation),
 and reports env-steps/s, the gradient's rate as a share of the forward's, and both compile times.
 Compile times are what this process paid: with a warm compilation cache they are loads (set
