@@ -17,10 +17,10 @@ from hexjax.sim.rollout import rollout_function
 from hexjax.sim.step import Summary
 from hexjax.tune.config import TuneConfig
 from hexjax.tune.es import tune_es
-from hexjax.tune.grad import tune
+from hexjax.tune.grad import average_iterate, tune
 from hexjax.tune.gradcheck import check, check_batch, tactile_check_setting, travel_objective
 from hexjax.tune.objective import per_env_objective
-from hexjax.tune.space import make_space
+from hexjax.tune.space import make_space, to_unconstrained
 from hexjax.world.presets import get_terrain, luneckas2020, yu2019
 
 # the tactile preset's parameter groups
@@ -174,6 +174,23 @@ def test_tuning_is_deterministic_and_resumes(tmp_path):
     # a checkpoint from another config is refused, not silently continued
     with pytest.raises(ValueError, match="different config"):
         tune(_small_config(seed=4), str(tmp_path / "a"), progress=False)
+    # optimizer.average: the optimiser takes the same steps (same training objectives), and what is evaluated
+    # and logged is the running average of its iterates in the unconstrained params
+    beta = 0.5
+    e = tune(_small_config(steps=3, optimizer={"name": "adam", "learning_rate": 0.2, "average": beta}),
+             str(tmp_path / "e"), progress=False)
+    assert [x.get("train_objective") for x in e["log"]] == [x.get("train_objective") for x in d["log"]]
+    space = _small_config().space()
+    u = [{n: to_unconstrained(jnp.asarray(x["params"][n], jnp.float32), b) for n, b in space.bounds}
+         for x in d["log"][1:]]
+    avg = u[0]
+    for k, uk in enumerate(u):
+        avg = average_iterate(avg, uk, k + 1, beta)
+        want = space.physical(avg)
+        got = e["log"][k + 1]["params"]
+        for n in want:
+            np.testing.assert_allclose(got[n], want[n], rtol=1e-5, err_msg=f"step {k + 1}, {n}")
+    assert e["log"][3]["params"] != d["log"][3]["params"]  # the average is not the last iterate
 
 
 def test_cli_tune_rejects_bad_configs(capsys):
@@ -183,6 +200,7 @@ def test_cli_tune_rejects_bad_configs(capsys):
                       (["params={overcome_height: {min: 0.1, max: 0.02}}"], "min=0.1 must be < max=0.02"),
                       (["solver_iterations=0"], "tune.solver_iterations=0"),
                       (["gates=soft"], "tune.gates='soft'"),
+                      (["optimizer.average=1"], "tune.optimizer.average=1"),
                       (["steps"], "use key=value")):
         rc = main(["tune", "--config", "tactile_tripod"] + sum([["--set", s] for s in sets], []))
         assert rc == 2

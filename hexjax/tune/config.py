@@ -127,7 +127,7 @@ class TuneConfig:
         if not (0 <= self.max_obstacle_height <= 0.2):
             raise ValueError(f"tune.max_obstacle_height={self.max_obstacle_height!r}: must be in [0, 0.2] m")
         opt = dict(self.optimizer)
-        unknown = set(opt) - {"name", "learning_rate", "clip_norm", "decay_to"}
+        unknown = set(opt) - {"name", "learning_rate", "clip_norm", "decay_to", "average"}
         if unknown:
             raise ValueError(f"tune.optimizer: unknown keys {sorted(unknown)}")
         if opt.get("name", "adam") not in OPTIMIZERS:
@@ -138,6 +138,9 @@ class TuneConfig:
         dec = opt.get("decay_to")
         if dec is not None and not (isinstance(dec, (int, float)) and 0 < dec <= 1):
             raise ValueError(f"tune.optimizer.decay_to={dec!r}: must be None or a fraction in (0, 1]")
+        avg = opt.get("average")
+        if avg is not None and not (isinstance(avg, (int, float)) and 0 <= avg < 1):
+            raise ValueError(f"tune.optimizer.average={avg!r}: must be None or a fraction in [0, 1)")
         clip = opt.get("clip_norm")
         if clip is not None and not (isinstance(clip, (int, float)) and math.isfinite(clip) and clip > 0):
             raise ValueError(f"tune.optimizer.clip_norm={clip!r}: must be None or a finite number > 0")

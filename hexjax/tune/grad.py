@@ -30,6 +30,15 @@ def make_optimizer(cfg: TuneConfig):
     return opt
 
 
+def average_iterate(avg, u, step: int, beta: float):
+    """The evaluated iterate under `optimizer.average` = beta: an exponential moving average of the optimiser's
+    iterates in the unconstrained params, avg_1 = u_1 and avg_k = beta avg_(k-1) + (1 - beta) u_k (step k >= 1,
+    counted after the update). beta = 0 returns u itself (no averaging)."""
+    if beta == 0 or step <= 1:
+        return u
+    return jax.tree_util.tree_map(lambda a, x: beta * a + (1 - beta) * x, avg, u)
+
+
 def tune(cfg: TuneConfig, out_dir: str, resume: bool = True, progress: bool = True,
          time_limit: Optional[float] = None) -> Dict[str, Any]:
     """Adam (or SGD) on the unconstrained params. Every step draws `train_batch` fresh terrains and takes
@@ -45,6 +54,7 @@ def tune(cfg: TuneConfig, out_dir: str, resume: bool = True, progress: bool = Tr
               f"differences (docs/tuning.md); this config runs {iterations}")
     u0 = problem.space.init(problem.params0)
     opt = make_optimizer(cfg)
+    beta = float(cfg.optimizer.get("average") or 0.0)
     digest = config_digest(cfg, "grad")
     if cfg.estimator == "hybrid":
         est = hybrid_value_and_grad(problem, problem.train_rollout(grad=True, params_batched=True),
@@ -60,7 +70,7 @@ def tune(cfg: TuneConfig, out_dir: str, resume: bool = True, progress: bool = Tr
         zo_key, per_step = None, cfg.train_batch
 
     def advance(state, step):
-        u, opt_state = state
+        u, opt_state = state[:2]
         terr, keys = problem.train_batch(step)
         key = None if zo_key is None else jax.random.fold_in(zo_key, step)
         (loss, _), g = vg(u, terr, keys, key)
@@ -68,9 +78,13 @@ def tune(cfg: TuneConfig, out_dir: str, resume: bool = True, progress: bool = Tr
         if ok:
             upd, opt_state = opt.update(g, opt_state, u)
             u = optax.apply_updates(u, upd)
-        return (u, opt_state), {"train_objective": float(loss), "grad_finite": ok,
-                                "grad_norm": float(optax.global_norm(g)) if ok else None}
+        new = (u, opt_state) + ((average_iterate(state[2], u, step + 1, beta),) if beta else ())
+        return new, {"train_objective": float(loss), "grad_finite": ok,
+                     "grad_norm": float(optax.global_norm(g)) if ok else None}
 
-    return drive(problem, out_dir, cfg.estimator.replace("first_order", "grad"), digest, (u0, opt.init(u0)),
-                  lambda st: st[0], advance, cfg.steps, per_step, lambda step: step % cfg.eval_every == 0, resume,
-                  progress, time_limit, t_start)
+    # the evaluated (and returned) iterate: the optimiser's own, or their running average (`optimizer.average`,
+    # then a third member of the state, so that checkpoints of runs without it keep their layout)
+    state0 = (u0, opt.init(u0)) + ((u0,) if beta else ())
+    return drive(problem, out_dir, cfg.estimator.replace("first_order", "grad"), digest, state0,
+                  lambda st: st[-1] if beta else st[0], advance, cfg.steps, per_step,
+                  lambda step: step % cfg.eval_every == 0, resume, progress, time_limit, t_start)
