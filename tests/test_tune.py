@@ -153,7 +153,8 @@ def _numbers(log):
 def test_tuning_is_deterministic_and_resumes(tmp_path):
     """A 2-step run, extended from its checkpoint to 3 steps, logs exactly what a fresh 3-step run logs (so
     the run is deterministic and resumes where it stopped); the params move inside their bounds; the returned
-    iterate is the best on the validation terrains; a checkpoint of another config is refused."""
+    iterate is the best on the validation terrains; a checkpoint of another config is refused; with
+    `optimizer.average` the optimiser's steps are the same and the logged params are the average of its iterates."""
     cfg = _small_config()
     a = tune(cfg, str(tmp_path / "a"), progress=False)
     assert a["log"][-1]["step"] == 2 and all(e["grad_finite"] for e in a["log"][1:])
