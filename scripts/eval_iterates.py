@@ -15,12 +15,10 @@ import argparse
 import json
 import time
 
-import jax.numpy as jnp
-
 from hexjax.tune.config import TuneConfig
 from hexjax.tune.grad import average_iterate
 from hexjax.tune.objective import Problem, evaluate_held_out
-from hexjax.tune.space import to_unconstrained
+from hexjax.tune.space import with_values
 
 
 def main():
@@ -34,15 +32,14 @@ def main():
         run = json.load(fh)
     problem = Problem.build(TuneConfig(**run["config"]))
     logged = {e["step"]: e["params"] for e in run["log"]}
-    u_of = lambda params: {n: to_unconstrained(jnp.asarray(params[n], jnp.float32), b)
-                           for n, b in problem.space.bounds}
+    u_of = lambda params: problem.space.init(with_values(problem.params0, params, a.log))
     cands = [(f"step {s}", logged[int(s)]) for s in a.steps.split(",") if s]
     cands.append((f"final (step {run['final']['step']}, as returned)", run["final"]["params"]))
     last = max(logged)
     for beta in (float(b) for b in a.average.split(",") if b):
         if not 0 < beta < 1:
             raise SystemExit(f"--average {beta}: must be in (0, 1)")
-        avg = u_of(logged[1])
+        avg = None  # step 1's average is its iterate
         for k in range(1, last + 1):
             avg = average_iterate(avg, u_of(logged[k]), k, beta)
         cands.append((f"average {beta} of steps 1-{last}", problem.space.physical(avg)))

@@ -19,8 +19,8 @@ from hexjax.tune.config import TuneConfig
 from hexjax.tune.es import tune_es
 from hexjax.tune.grad import average_iterate, tune
 from hexjax.tune.gradcheck import check, check_batch, tactile_check_setting, travel_objective
-from hexjax.tune.objective import per_env_objective
-from hexjax.tune.space import make_space, to_unconstrained
+from hexjax.tune.objective import Problem, per_env_objective
+from hexjax.tune.space import make_space, with_values
 from hexjax.world.presets import get_terrain, luneckas2020, yu2019
 
 # the tactile preset's parameter groups
@@ -181,10 +181,10 @@ def test_tuning_is_deterministic_and_resumes(tmp_path):
     e = tune(_small_config(steps=3, optimizer={"name": "adam", "learning_rate": 0.2, "average": beta}),
              str(tmp_path / "e"), progress=False)
     assert [x.get("train_objective") for x in e["log"]] == [x.get("train_objective") for x in d["log"]]
-    space = _small_config().space()
-    u = [{n: to_unconstrained(jnp.asarray(x["params"][n], jnp.float32), b) for n, b in space.bounds}
-         for x in d["log"][1:]]
-    avg = u[0]
+    p = Problem.build(_small_config())
+    space = p.space
+    u = [space.init(with_values(p.params0, x["params"])) for x in d["log"][1:]]
+    avg = None  # step 1's average is its iterate
     for k, uk in enumerate(u):
         avg = average_iterate(avg, uk, k + 1, beta)
         want = space.physical(avg)
