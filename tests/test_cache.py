@@ -78,3 +78,38 @@ def test_every_cpu_process_keeps_the_programs_it_compiles(monkeypatch):
     for platform in ("cpu", "gpu"):
         compiler._cache_write(f"key-{platform}", 10.0, "jit_f", types.SimpleNamespace(platform=platform), None)
     assert written == ["key-cpu"] and distributed.global_state.process_id == 1
+
+
+_LOWER_EVAL = """
+import hashlib, sys, jax
+from hexjax.tune.config import load_tune_config
+from hexjax.tune.objective import Problem
+problem = Problem.build(load_tune_config("cpg_step_ditch", {"train_batch": 5}))
+model, fn = problem.hard_rollout()
+
+def module(n):
+    terr = problem.terrain_batch(jax.random.PRNGKey(0), n)
+    keys = jax.random.split(jax.random.PRNGKey(1), n)
+    text = jax.jit(fn).lower(model, problem.eval_params0, terr, keys).as_text()
+    return hashlib.sha256(text.encode()).hexdigest()
+"""
+
+
+def test_a_program_lowers_the_same_whatever_the_process_traced_before():
+    """The CPG's evaluation rollout of `cpg_step_ditch` for 5 terrains lowers to another module in a process that
+    traced it for 6 terrains first: jitted callees traced for the first program come back from JAX's caches with
+    the inner jaxprs of that time, and the module holds different private functions. JAX's persistent cache is
+    keyed by the module, so such a process compiled the program again (a tuning run's gradient program, 165 s
+    on an H100). `Compiled` empties those caches before it traces (`hexjax.sim.compiled.fresh_trace`): then
+    the module is the one a fresh process lowers. (The second assert is the fault itself: should a JAX version
+    stop keeping traces between programs, it fails and this test can go.)"""
+    from hexjax.sim.compiled import fresh_trace
+    fresh = _run(_LOWER_EVAL + "print(module(5))\n", HEXJAX_CACHE_DIR="off").stdout.split()[-1]
+    ns = {}
+    exec(_LOWER_EVAL, ns)
+    fresh_trace()
+    ns["module"](6)
+    after = ns["module"](5)
+    fresh_trace()
+    assert ns["module"](5) == fresh
+    assert after != fresh

@@ -8,6 +8,9 @@ named by a hash of everything that shapes it: the static settings (robot, physic
 rollout config, step count), the input signature (shapes, dtypes, shardings), the source of hexjax and of
 the controller's module, the versions of jax, jaxlib, mujoco and mujoco-mjx, the XLA flags and the devices.
 A file that does not load is compiled afresh and replaced.
+
+A program is traced from an empty jit-tracing cache (`fresh_trace`), so that the same program gives the same
+module, and so the same persistent-cache key, whatever the process traced before it.
 """
 
 from __future__ import annotations
@@ -29,6 +32,13 @@ import jax
 import numpy as np
 
 from hexjax import cache
+
+try:  # JAX's two caches of traced functions (`jax.jit` calls inside a traced function): see `fresh_trace`
+    from jax._src.interpreters.partial_eval import trace_to_jaxpr as _jaxpr_cache
+    from jax._src.pjit import _infer_params_cached as _jit_call_cache
+    _TRACE_CACHES = (_jit_call_cache, _jaxpr_cache)
+except ImportError:  # another JAX layout: clear every cache instead
+    _TRACE_CACHES = ()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -88,6 +98,29 @@ def _source_of(obj) -> str:
     return Path(path).read_text()
 
 
+def fresh_trace() -> None:
+    """Empty JAX's caches of traced functions before a large program is traced, so that the program lowers to
+    the same module whatever the process traced before it.
+
+    Each jitted callee of a traced program (`jnp.where`, `jnp.remainder`, MJX's collision functions: about two
+    thousand in an MJX gradient program) becomes a private function of the module, one per traced jaxpr, and
+    calls share a function only when they share the jaxpr object. Those objects come from JAX's caches of
+    traced calls, which outlive a trace: one of them keeps only the 2,048 most recent calls (jax 0.11). So a
+    callee traced for an earlier program can come back with the inner jaxprs of that time while a sibling
+    call is traced anew, and the module gains a function: the tuning gradient program of `cpg_step_ditch` had
+    two more `_where` functions after the two evaluation programs had been traced in the same process (a
+    `jnp.remainder` kept from them called an older `_where`) than in a process that loaded those programs from
+    disk. The key of JAX's persistent cache is a hash of the module, so that process compiled the program
+    again (165 s on an H100, docs/benchmarks.md, 2026-11-26 eighth session).
+
+    Only the two tracing caches are emptied; compiled executables of jitted functions and eager operations
+    stay. Where this JAX lays them out otherwise, every cache is cleared."""
+    for c in _TRACE_CACHES:
+        c.cache_clear()
+    if not _TRACE_CACHES:
+        jax.clear_caches()
+
+
 class Compiled:
     """A jitted function compiled ahead of time per input signature. `call(*args)` returns (outputs,
     CompileStats); calling the object returns the outputs alone. `static`: the hashable settings the
@@ -142,6 +175,7 @@ class Compiled:
             return leaves_out
 
         try:
+            fresh_trace()
             exported = jax.export.export(jax.jit(flat))(*leaves)
             exe = self._flat_executable(exported, out["tree"], leaves)
             path.parent.mkdir(parents=True, exist_ok=True)
@@ -166,6 +200,7 @@ class Compiled:
         if exe is None and path is not None:
             exe, source = self._export(path, args, leaves, in_tree), "compiled"
         if exe is None:
+            fresh_trace()
             exe, source = self.jitted.lower(*args).compile(), "compiled"
         self.executables[sig] = exe
         # timed before the first call: on the GPU that call can block until the run ends (MJX's solver loops
