@@ -81,7 +81,7 @@ def test_every_cpu_process_keeps_the_programs_it_compiles(monkeypatch):
 
 
 _LOWER_EVAL = """
-import hashlib, sys, jax
+import hashlib, jax
 from hexjax.tune.config import load_tune_config
 from hexjax.tune.objective import Problem
 problem = Problem.build(load_tune_config("cpg_step_ditch", {"train_batch": 5}))
@@ -102,7 +102,7 @@ def test_a_program_lowers_the_same_whatever_the_process_traced_before():
     keyed by the module, so such a process compiled the program again (a tuning run's gradient program, 165 s
     on an H100). `Compiled` empties those caches before it traces (`hexjax.sim.compiled.fresh_trace`): then
     the module is the one a fresh process lowers. Without the call the assert fails (checked with jax 0.11.2:
-    the module after the 6-terrain one differed from the fresh process's, in two runs)."""
+    the module after the 6-terrain one differed from the fresh process's)."""
     from hexjax.sim.compiled import fresh_trace
     fresh = _run(_LOWER_EVAL + "print(module(5))\n", HEXJAX_CACHE_DIR="off").stdout.split()[-1]
     ns = {}

@@ -9,8 +9,8 @@ rollout config, step count), the input signature (shapes, dtypes, shardings), th
 the controller's module, the versions of jax, jaxlib, mujoco and mujoco-mjx, the XLA flags and the devices.
 A file that does not load is compiled afresh and replaced.
 
-A program is traced from an empty jit-tracing cache (`fresh_trace`), so that the same program gives the same
-module, and so the same persistent-cache key, whatever the process traced before it.
+A program is traced from empty tracing caches (`fresh_trace`), so that the same program gives the same module,
+and so the same persistent-cache key, whatever the process traced before it.
 """
 
 from __future__ import annotations
