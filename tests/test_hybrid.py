@@ -1,6 +1,7 @@
 """Issue 19's tuning additions, without compiling a rollout: the hybrid estimator's fit and its plumbing
 (antithetic pairs on the same terrain and noise key, the flat parameter order), tuning on several terrain
-presets at once, CMA-ES on the hard objective, and tuned params handed to an experiment."""
+presets at once, CMA-ES on the hard objective, tuned params handed to an experiment, and the key under which the
+tuners keep their compiled programs."""
 
 import json
 import types
@@ -13,7 +14,7 @@ import pytest
 from hexjax.control.tactile import TactileGaitController
 from hexjax.sim.grad import clip_cotangent
 from hexjax.tune.config import load_tune_config
-from hexjax.tune.driver import config_digest
+from hexjax.tune.driver import config_digest, program_digest
 from hexjax.tune.hybrid import combine, per_env_estimates
 from hexjax.tune.objective import Problem, mean_value_and_grad, per_env_objective
 from hexjax.tune.space import load_values, make_space, with_values
@@ -159,3 +160,28 @@ def test_tuned_values_load_from_a_log_and_are_checked(tmp_path):
     (tmp_path / "bad.json").write_text("[1, 2]")
     with pytest.raises(ValueError, match="expected a tuning log.json or a mapping"):
         load_values(str(tmp_path / "bad.json"))
+
+
+def test_runs_that_differ_only_outside_the_program_share_its_kept_copy():
+    """A tuner's compiled program is kept on disk under `program_digest`: another seed, run length, evaluation
+    period, held-out or validation batch, optimiser or CMA-ES step size gives the same key (so a seed-1 run
+    loads seed 0's program), while a setting traced into the program gives another key. The checkpoint's
+    `config_digest` still tells the seeds apart, so a run never resumes another seed's checkpoint."""
+    base = load_tune_config("cpg_step_ditch")
+    outside = {"seed": 1, "steps": 7, "eval_every": 3, "held_out_batch": 9, "validation_batch": 0,
+               "optimizer": {"name": "sgd", "learning_rate": 0.2, "average": 0.7}, "es_sigma": 0.3}
+    inside = {"window": 1.0, "grad_clip": 3.0, "gates": "straight_through", "train_batch": 12, "distance": 0.5,
+              "solver_iterations": 5, "objective": {"dx": 1.0}, "terrain": ["step40", "ditch40"], "es_population": 4,
+              "estimator": "hybrid", "es_objective": "smooth"}
+    for method in ("grad", "es8"):
+        for k, v in outside.items():
+            other = load_tune_config("cpg_step_ditch", {k: v})
+            assert program_digest(other, method) == program_digest(base, method), (method, k)
+        key = program_digest(base, method)
+        changed = [k for k, v in inside.items()
+                   if program_digest(load_tune_config("cpg_step_ditch", {k: v}), method) != key]
+        # CMA-ES's settings stay out of the gradient's key and the gradient's window, clip and estimator out of
+        # CMA-ES's (both keep the gates: CMA-ES on the smooth objective runs the training rollout)
+        assert set(inside) - set(changed) == ({"es_population", "es_objective"} if method == "grad" else
+                                              {"window", "grad_clip", "estimator"}), (method, changed)
+    assert config_digest(load_tune_config("cpg_step_ditch", {"seed": 1}), "grad") != config_digest(base, "grad")

@@ -52,6 +52,21 @@ def config_digest(cfg: TuneConfig, method: str) -> str:
     return hashlib.sha256(json.dumps([method, d], sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
+# settings that never reach a tuner's compiled program: the run's length and evaluation period, the seed (it draws
+# the terrains and keys, which the program takes as arguments), the held-out and validation batches (the
+# evaluation rollout is a program of its own) and the optimiser and CMA-ES's step size (applied outside it)
+_OUTSIDE_PROGRAM = ("seed", "held_out_batch", "validation_batch", "optimizer", "es_sigma")
+
+
+def program_digest(cfg: TuneConfig, method: str) -> str:
+    """Identifies a tuner's compiled program (`Problem.static`): `config_digest` less the settings the program
+    does not depend on, so that runs that differ only in those (another seed, learning rate or held-out
+    batch) share one kept program instead of tracing and lowering it again (a first step of 70-76 s against
+    41 s on an H100 for the `cpg_step_ditch` gradient; docs/benchmarks.md, 2026-11-26 ninth session)."""
+    return config_digest(dataclasses.replace(cfg, **{k: getattr(TuneConfig(), k) for k in _OUTSIDE_PROGRAM}),
+                         method)
+
+
 _COMPILED: Dict[str, Any] = {}
 
 

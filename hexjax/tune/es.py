@@ -11,7 +11,7 @@ import jax.numpy as jnp
 from evosax.algorithms import CMA_ES
 
 from hexjax.tune.config import TuneConfig
-from hexjax.tune.driver import cached, config_digest, drive
+from hexjax.tune.driver import cached, config_digest, drive, program_digest
 from hexjax.tune.objective import Problem, per_env_objective
 
 
@@ -46,7 +46,8 @@ def tune_es(cfg: TuneConfig, out_dir: str, rollouts: int, resume: bool = True, p
         j = per_env_objective(s, cfg.distance, cfg.objective)
         return j.reshape(pop, B).mean(1)
 
-    pop_loss = cached(digest + "/pop", lambda: jax.jit(population_loss), problem.static("es/pop", digest))
+    program = program_digest(cfg, f"es{pop}")
+    pop_loss = cached(program + "/pop", lambda: jax.jit(population_loss), problem.static("es/pop", program))
 
     def advance(state, gen):
         k_ask, k_tell = jax.random.split(jax.random.fold_in(key, gen))

@@ -12,7 +12,7 @@ import jax
 import optax
 
 from hexjax.tune.config import TuneConfig
-from hexjax.tune.driver import all_finite, cached, config_digest, drive
+from hexjax.tune.driver import all_finite, cached, config_digest, drive, program_digest
 from hexjax.tune.hybrid import hybrid_value_and_grad
 from hexjax.tune.objective import Problem
 
@@ -55,17 +55,17 @@ def tune(cfg: TuneConfig, out_dir: str, resume: bool = True, progress: bool = Tr
     u0 = problem.space.init(problem.params0)
     opt = make_optimizer(cfg)
     beta = float(cfg.optimizer.get("average") or 0.0)
-    digest = config_digest(cfg, "grad")
+    digest, program = config_digest(cfg, "grad"), program_digest(cfg, "grad")
     if cfg.estimator == "hybrid":
         est = hybrid_value_and_grad(problem, problem.train_rollout(grad=True, params_batched=True),
                                     problem.train_rollout(grad=False, params_batched=True))
-        vg = cached(digest + "/hybrid", lambda: jax.jit(est), problem.static("grad/hybrid", digest))
+        vg = cached(program + "/hybrid", lambda: jax.jit(est), problem.static("grad/hybrid", program))
         zo_key = jax.random.PRNGKey(cfg.seed + 11)
         per_step = cfg.train_batch * (1 + 2 * cfg.zo_pairs)
     else:
         model, fn = problem.train_rollout(grad=True)
-        loss_vg = cached(digest + "/vg", lambda: jax.jit(problem.value_and_grad(fn, model)),
-                         problem.static("grad/vg", digest))
+        loss_vg = cached(program + "/vg", lambda: jax.jit(problem.value_and_grad(fn, model)),
+                         problem.static("grad/vg", program))
         vg = lambda u, terr, keys, key: loss_vg(u, terr, keys)
         zo_key, per_step = None, cfg.train_batch
 
