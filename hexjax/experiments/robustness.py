@@ -102,8 +102,8 @@ def solver_note(kind: str, backend: str, iterations: int):
     with 4, none on MuJoCo C; docs/robustness.md, "A caveat on the stones' falls")."""
     if kind == "stones" and backend == "mjx" and iterations < 4:
         return (f"note: on stepping stones MJX's {iterations} Newton iterations leave the contact solve "
-                f"unconverged, and most falls at wide gaps are the solver's, not the terrain's "
-                f"(docs/robustness.md); --iterations 4 or --backend c judge the terrain")
+                "unconverged, and most falls at wide gaps are the solver's, not the terrain's "
+                "(docs/robustness.md); --iterations 4 or --backend c judge the terrain")
     return None
 
 
