@@ -31,9 +31,9 @@ def _flat(tree):
     return [np.asarray(x) for x in jax.tree_util.tree_leaves(tree)]
 
 
-def config_digest(cfg: TuneConfig, method: str) -> str:
+def config_digest(cfg: TuneConfig, method: str, also_drop: tuple = ()) -> str:
     """Identifies what a checkpoint continues: the config less the step count and evaluation period (a run
-    may be extended) and less the other method's settings."""
+    may be extended) and less the other method's settings; less `also_drop` too (`program_digest`)."""
     d = dataclasses.asdict(cfg)
     drop = ["steps", "eval_every"] + (["optimizer", "window", "grad_clip"] if method != "grad" else
                                       ["es_population", "es_sigma"])
@@ -49,6 +49,8 @@ def config_digest(cfg: TuneConfig, method: str) -> str:
         drop.append("gates")
     for k in drop:
         d.pop(k)
+    for k in also_drop:
+        d.pop(k, None)
     return hashlib.sha256(json.dumps([method, d], sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
@@ -63,8 +65,7 @@ def program_digest(cfg: TuneConfig, method: str) -> str:
     does not depend on, so that runs that differ only in those (another seed, learning rate or held-out
     batch) share one kept program instead of tracing and lowering it again (a first step of 70-76 s against
     41 s on an H100 for the `cpg_step_ditch` gradient; docs/benchmarks.md, 2026-11-26 ninth session)."""
-    return config_digest(dataclasses.replace(cfg, **{k: getattr(TuneConfig(), k) for k in _OUTSIDE_PROGRAM}),
-                         method)
+    return config_digest(cfg, method, also_drop=_OUTSIDE_PROGRAM)
 
 
 _COMPILED: Dict[str, Any] = {}
