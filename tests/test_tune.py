@@ -202,6 +202,8 @@ def test_cli_tune_rejects_bad_configs(capsys):
                       (["solver_iterations=0"], "tune.solver_iterations=0"),
                       (["gates=soft"], "tune.gates='soft'"),
                       (["optimizer.average=1"], "tune.optimizer.average=1"),
+                      (["backward=sideways"], "tune.backward='sideways'"),
+                      (["backward=parallel", "estimator=hybrid"], "tune.backward='parallel' with tune.estimator"),
                       (["steps"], "use key=value")):
         rc = main(["tune", "--config", "tactile_tripod"] + sum([["--set", s] for s in sets], []))
         assert rc == 2

@@ -191,7 +191,7 @@ def run(o, entry) -> Dict:
     if o.grad:
         from hexjax.experiments.bench_grad import bench_grad
         return bench_grad(tune=o.tune, batches=o.batches, solver_grads=o.solver_grad, repeats=o.repeats,
-                          unroll_substeps=o.unroll_substeps)
+                          unroll_substeps=o.unroll_substeps, backwards=o.backward)
     return bench(robot=o.robot, batches=o.batches, sim_seconds=o.seconds, terrains=o.terrains,
                  controller=",".join(o.controller), backend=",".join(o.backend), nthread=o.nthread,
                  devices=o.devices, repeats=o.repeats)

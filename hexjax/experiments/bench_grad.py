@@ -7,6 +7,8 @@ For one tuning config (configs/tune/*.yaml) and each batch size, times in one pr
   through the gradient rollout (truncated windows, per-env per-step bound, remat;
   `hexjax.tune.objective.Problem.train_rollout`) with each way through MJX's
   constraint solve (`RolloutConfig.solver_grad`: 'unrolled' Newton iterations or 'implicit' differentiation),
+  and with each way to run its backward pass (`TuneConfig.backward`: 'sequential' reverse mode through the
+  rollout's scan, 'parallel' the windows side by side, `hexjax.sim.windows`; rows `grad-<solver>-parallel`),
 and reports env-steps/s, the gradient's rate as a share of the forward's, and both compile times.
 Compile times are what this process paid: with a warm compilation cache they are loads (set
 HEXJAX_CACHE_DIR=off to measure compiles).
@@ -27,7 +29,7 @@ from tqdm.auto import tqdm
 
 from hexjax.sim.config import GRAD_SOLVERS, RolloutConfig
 from hexjax.sim.step import control_steps, settle_steps, substeps
-from hexjax.tune.config import load_tune_config
+from hexjax.tune.config import BACKWARDS, load_tune_config
 from hexjax.tune.objective import Problem
 
 
@@ -62,31 +64,38 @@ def physics_steps(problem: Problem, duration: float | None = None) -> int:
 def objective_program(problem: Problem, grad: bool, duration: float | None = None,
                       settle_time: float | None = None):
     """The jitted program timed: the smooth training objective (u, terrain, keys) -> (mean J, per-env J), or with
-    `grad` its `Problem.value_and_grad` through the gradient rollout (`Problem.train_rollout`, which reads
-    `duration` and `settle_time`). Also what scripts/compile_probe.py and scripts/profile_grad.py compile."""
-    model, fn = problem.train_rollout(grad=grad, duration=duration, settle_time=settle_time)
-    return jax.jit(problem.value_and_grad(fn, model) if grad else problem.loss_fn(fn, model))
+    `grad` its value and gradient through the gradient rollout (`Problem.gradient_program`; both read `duration`
+    and `settle_time`). Also what scripts/compile_probe.py and scripts/profile_grad.py compile."""
+    if grad:
+        return jax.jit(problem.gradient_program(duration, settle_time))
+    model, fn = problem.train_rollout(grad=False, duration=duration, settle_time=settle_time)
+    return jax.jit(problem.loss_fn(fn, model))
 
 
 def bench_grad(tune: str = "tactile_tripod", batches: Sequence[int] = (64,),
                solver_grads: Sequence[str] = GRAD_SOLVERS, repeats: int = 2, progress: bool = True,
-               unroll_substeps: bool = False) -> dict:
-    """Rows per batch: forward, then value_and_grad for each of `solver_grads` (see the module docstring);
-    `unroll_substeps`: the gradient rollouts' `RolloutConfig.unroll_substeps`."""
+               unroll_substeps: bool = False, backwards: Sequence[str] = ("sequential",)) -> dict:
+    """Rows per batch: forward, then value_and_grad for each of `solver_grads` and `backwards` (see the module
+    docstring); `unroll_substeps`: the gradient rollouts' `RolloutConfig.unroll_substeps`."""
     bad = [s for s in solver_grads if s not in GRAD_SOLVERS]
     if bad or not solver_grads:
         raise ValueError(f"solver_grad={list(solver_grads)!r}: a comma list of {GRAD_SOLVERS}")
     for b in batches:
         if not isinstance(b, int) or b < 1:
             raise ValueError(f"batches entry {b!r}: must be an integer >= 1")
+    bad = [b for b in backwards if b not in BACKWARDS]
+    if bad or not backwards:
+        raise ValueError(f"backward={list(backwards)!r}: a comma list of {BACKWARDS}")
     cfg = load_tune_config(tune, {"unroll_substeps": unroll_substeps} if unroll_substeps else None)
-    problems = {s: Problem.build(dataclasses.replace(cfg, solver_grad=s)) for s in solver_grads}
-    base = problems[solver_grads[0]]
+    problems = {s + ("-parallel" if b == "parallel" else ""): Problem.build(dataclasses.replace(cfg, solver_grad=s,
+                                                                                               backward=b))
+                for s in solver_grads for b in backwards}
+    base = next(iter(problems.values()))
     n_phys = physics_steps(base)
     u0 = base.space.init(base.params0)
     data = {b: base.train_batch(0, b) for b in batches}  # the same terrains and headings for every mode
     rows = []
-    jobs = [(b, m) for b in batches for m in ("forward",) + tuple(solver_grads)]
+    jobs = [(b, m) for b in batches for m in ("forward",) + tuple(problems)]
     for b, mode in tqdm(jobs, desc="bench --grad", disable=not progress):
         terr, keys = data[b]
         f = objective_program(base if mode == "forward" else problems[mode], grad=mode != "forward")

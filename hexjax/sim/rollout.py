@@ -23,9 +23,8 @@ from hexjax.sim.backends.mujoco_c import rollout_c
 from hexjax.sim.compiled import Compiled
 from hexjax.sim.config import PhysicsConfig, RolloutConfig, SensorConfig
 from hexjax.sim.implicit import REMAT_POLICY, implicit_solver
-from hexjax.sim.model import mjx, reversible_solver, sim_model
-from hexjax.sim.step import (Summary, control_steps, end_pose, init_acc, make_control_step, settle_steps, stop_derived,
-                             substeps)
+from hexjax.sim.model import reversible_solver, sim_model
+from hexjax.sim.step import Summary, control_steps, end_pose, make_control_step, make_env_start, settle_steps, substeps
 from hexjax.world.robot import RobotSpec
 from hexjax.world.terrain import Terrain
 
@@ -62,26 +61,11 @@ def _compiled(robot: RobotSpec, physics: PhysicsConfig, sensors: SensorConfig, c
     `mesh`, each device runs the vmapped rollout of its own envs (`jax.shard_map` over the 'batch' axis)."""
     sm = sim_model(robot, physics, impl)
     n_settle = settle_steps(cfg, controller.dt)
-    ctrl0_default = jnp.asarray(sm.ctrl0)
     control_step = make_control_step(sm, sensors, cfg, controller, n_settle)
+    env_start, _ = make_env_start(sm, cfg, controller)
 
     def single(m_shared, params, terrain: Terrain, key, d_template, pert):
-        k_yaw, k_ctrl = jax.random.split(key)
-        yaw0 = jax.random.uniform(k_yaw, (), minval=-cfg.yaw_noise, maxval=cfg.yaw_noise)
-        d0 = sm.init_data(jnp.stack([0.0, 0.0, yaw0]), d_template)
-        cstate0 = controller.init(params, k_ctrl)
-        # a controller may ask to settle in its own first posture (the CPG starts mid-stride)
-        ctrl0 = controller.initial_action(params)
-        ctrl0 = ctrl0_default if ctrl0 is None else ctrl0
-        d0 = d0.replace(qpos=d0.qpos.at[7:].set(ctrl0), ctrl=ctrl0)
-        acc0 = init_acc(jnp.stack([d0.qpos[0], d0.qpos[1], yaw0]))
-        # forward once so site positions exist before the first slot assignment
-        d0 = mjx.forward(m_shared, d0)
-        if impl == "jax":  # gradients cross control steps through the state only (`hexjax.sim.step.GRAD_FIELDS`)
-            d0 = stop_derived(d0)
-
-        # the range sensor's noise (controllers with a `sensor` only: other programs stay as they were)
-        k_sense = jax.random.fold_in(key, 1) if getattr(controller, "sensor", None) is not None else None
+        (d0, cstate0, acc0), ctrl0, k_sense = env_start(m_shared, params, key, d_template)
 
         def body(carry, i):
             return control_step(carry, i, params, terrain, m_shared, ctrl0, pert, k_sense)

@@ -205,6 +205,40 @@ def keep_finite(d_new, d, warp: bool = False):
     return jax.tree_util.tree_map(lambda a, b: jnp.where(finite, a, b), d_new, d), finite
 
 
+# The start of an env ----------------------------------------------------------------------------------------
+def make_env_start(sm: SimModel, cfg: RolloutConfig, controller):
+    """(start, settle_action): `start(m_shared, params, key, d_template) -> ((d0, cstate0, acc0), ctrl0, sense_key)`
+    of one env, and `settle_action(params) -> ctrl0` alone. The env starts with its
+    heading drawn from `key` within `cfg.yaw_noise`, the legs in the controller's first posture (its
+    `initial_action`, else the model's `ctrl0`), forwarded once so that site positions exist before the first
+    slot assignment; `ctrl0` the targets held while settling; `sense_key` the range sensor's noise key (None
+    for controllers without a `sensor`). With MJX-JAX, gradients cross control steps through the state only
+    (`GRAD_FIELDS`)."""
+    ctrl0_default = jnp.asarray(sm.ctrl0)
+
+    def settle_action(params):
+        # a controller may ask to settle in its own first posture (the CPG starts mid-stride)
+        ctrl0 = controller.initial_action(params)
+        return ctrl0_default if ctrl0 is None else ctrl0
+
+    def start(m_shared, params, key, d_template=None):
+        k_yaw, k_ctrl = jax.random.split(key)
+        yaw0 = jax.random.uniform(k_yaw, (), minval=-cfg.yaw_noise, maxval=cfg.yaw_noise)
+        d0 = sm.init_data(jnp.stack([0.0, 0.0, yaw0]), d_template)
+        cstate0 = controller.init(params, k_ctrl)
+        ctrl0 = settle_action(params)
+        d0 = d0.replace(qpos=d0.qpos.at[7:].set(ctrl0), ctrl=ctrl0)
+        acc0 = init_acc(jnp.stack([d0.qpos[0], d0.qpos[1], yaw0]))
+        d0 = mjx.forward(m_shared, d0)
+        if sm.impl == "jax":
+            d0 = stop_derived(d0)
+        # the range sensor's noise (controllers with a `sensor` only: other programs stay as they were)
+        k_sense = jax.random.fold_in(key, 1) if getattr(controller, "sensor", None) is not None else None
+        return (d0, cstate0, acc0), ctrl0, k_sense
+
+    return start, settle_action
+
+
 # The control step, as the rollout scans it -----------------------------------------------------------------
 _PROGRESS_SINK = [None]
 

@@ -16,6 +16,7 @@ OBJECTIVE_TERMS = ("dx", "dy", "dalpha", "fall", "energy")
 OPTIMIZERS = ("adam", "sgd")
 ESTIMATORS = ("first_order", "hybrid")
 GATES = ("smooth", "straight_through")
+BACKWARDS = ("sequential", "parallel")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -51,6 +52,12 @@ class TuneConfig:
     # the training rollout's `RolloutConfig.unroll_substeps`: each control step's physics steps traced one after
     # another; the gradient runs faster on a GPU (+28 % on an H100) and compiles about twice as long
     unroll_substeps: bool = False
+    # how the windowed gradient's backward pass runs: 'sequential' is reverse mode through the rollout's scan,
+    # every control step after the other; 'parallel' runs the windows' backward passes side by side,
+    # train_batch x windows of them (`hexjax.sim.windows`), which pays on a GPU at tuning's batch sizes. The
+    # same gradient to float32 rounding where `grad_clip` does not bind; where it binds they differ, not yet
+    # explained (docs/tuning.md, "The windows' backward passes side by side"). First-order estimator only.
+    backward: str = "sequential"
     # the gradient estimator of `hexjax.tune.grad` (docs/tuning.md, "The hybrid estimator"): 'first_order'
     # is the windowed pathwise gradient; 'hybrid' fits the whole walk's directional derivatives along
     # `zo_pairs` antithetic perturbations per training terrain (N(0, zo_sigma^2) on the unconstrained scale),
@@ -118,6 +125,11 @@ class TuneConfig:
             raise ValueError(f"tune.solver_grad={self.solver_grad!r}: use one of {GRAD_SOLVERS}")
         if not isinstance(self.unroll_substeps, bool):
             raise ValueError(f"tune.unroll_substeps={self.unroll_substeps!r}: must be true or false")
+        if self.backward not in BACKWARDS:
+            raise ValueError(f"tune.backward={self.backward!r}: use one of {BACKWARDS}")
+        if self.backward == "parallel" and self.estimator != "first_order":
+            raise ValueError(f"tune.backward='parallel' with tune.estimator={self.estimator!r}: the parallel "
+                             "backward pass serves the first-order estimator only; use backward: sequential")
         for f in ("distance", "horizon", "window", "grad_clip", "temperature", "es_sigma", "zo_sigma", "zo_prior"):
             v = getattr(self, f)
             if f == "temperature" and v is None:

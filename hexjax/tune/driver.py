@@ -47,6 +47,8 @@ def config_digest(cfg: TuneConfig, method: str, also_drop: tuple = ()) -> str:
         drop.append("unroll_substeps")
     if cfg.gates == "smooth":  # likewise
         drop.append("gates")
+    if method != "grad" or cfg.backward == "sequential":  # likewise
+        drop.append("backward")
     for k in drop:
         d.pop(k)
     for k in also_drop:

@@ -63,8 +63,7 @@ def tune(cfg: TuneConfig, out_dir: str, resume: bool = True, progress: bool = Tr
         zo_key = jax.random.PRNGKey(cfg.seed + 11)
         per_step = cfg.train_batch * (1 + 2 * cfg.zo_pairs)
     else:
-        model, fn = problem.train_rollout(grad=True)
-        loss_vg = cached(program + "/vg", lambda: jax.jit(problem.value_and_grad(fn, model)),
+        loss_vg = cached(program + "/vg", lambda: jax.jit(problem.gradient_program()),
                          problem.static("grad/vg", program))
         vg = lambda u, terr, keys, key: loss_vg(u, terr, keys)
         zo_key, per_step = None, cfg.train_batch

@@ -45,6 +45,7 @@ from hexjax.control.tactile import TactileGaitController
 from hexjax.sim.compiled import arrays_digest
 from hexjax.sim.config import PhysicsConfig, RolloutConfig, physics_for
 from hexjax.sim.rollout import rollout_function
+from hexjax.sim.windows import windowed_value_and_grad
 from hexjax.tune.config import TuneConfig
 from hexjax.tune.space import ParamSpace
 from hexjax.world.presets import get_robot
@@ -131,14 +132,20 @@ class Problem:
                       settle_time: Optional[float] = None):
         """(model, fn) of the smooth rollout; `grad` adds the truncation, bound and remat. `duration`,
         `settle_time` (s): instead of the config's walk and RolloutConfig's settling (scripts/profile_grad.py)."""
-        window = max(1, int(round(self.cfg.window / self.train_ctrl.dt)))
-        rc = RolloutConfig(grad_clip=self.cfg.grad_clip, grad_window=window, remat=True,
-                           solver_grad=self.cfg.solver_grad, unroll_substeps=self.cfg.unroll_substeps) \
-            if grad else RolloutConfig()
+        rc = self._grad_config(settle_time)[1] if grad else RolloutConfig()
         if settle_time is not None:
             rc = dataclasses.replace(rc, settle_time=settle_time)
         return rollout_function(self.robot, self.train_ctrl, self.duration if duration is None else duration,
                                 physics=self.physics(), config=rc, params_batched=params_batched)
+
+    def _grad_config(self, settle_time: Optional[float] = None):
+        """(window in control steps, RolloutConfig) of the gradient rollout."""
+        window = max(1, int(round(self.cfg.window / self.train_ctrl.dt)))
+        rc = RolloutConfig(grad_clip=self.cfg.grad_clip, grad_window=window, remat=True,
+                           solver_grad=self.cfg.solver_grad, unroll_substeps=self.cfg.unroll_substeps)
+        if settle_time is not None:
+            rc = dataclasses.replace(rc, settle_time=settle_time)
+        return window, rc
 
     def hard_rollout(self, params_batched: bool = False):
         """(model, fn) of the hard form as a pure jitted function (for CMA-ES on the evaluated objective,
@@ -178,6 +185,31 @@ class Problem:
         """f(u, terrain, keys) -> ((mean J, per-env J), d mean J / du) through the gradient rollout (fn, model) of
         `train_rollout(grad=True)`, with `grad_clip` bounding each env's own cotangent (`mean_value_and_grad`)."""
         return mean_value_and_grad(self.loss_fn(fn, model))
+
+    def gradient_program(self, duration: Optional[float] = None, settle_time: Optional[float] = None):
+        """The function a first-order tuning step jits, f(u, terrain, keys) -> ((mean J, per-env J), d mean J / du),
+        with its backward pass as `backward` says: reverse mode through the rollout's scan (`value_and_grad`) or
+        the windows side by side (`parallel_value_and_grad`). `duration`, `settle_time` as `train_rollout`'s."""
+        if self.cfg.backward == "parallel":
+            return self.parallel_value_and_grad(duration, settle_time)
+        model, fn = self.train_rollout(grad=True, duration=duration, settle_time=settle_time)
+        return self.value_and_grad(fn, model)
+
+    def parallel_value_and_grad(self, duration: Optional[float] = None, settle_time: Optional[float] = None):
+        """The same f(u, terrain, keys) as `value_and_grad`, its gradient taken with the windows' backward passes
+        side by side (`hexjax.sim.windows`): the gradient of sum J over the batch, divided by its size."""
+        _, rc = self._grad_config(settle_time)
+        loss = lambda s: per_env_objective(s, self.cfg.distance, self.cfg.objective)
+        walk = self.duration if duration is None else duration
+        model, vg = windowed_value_and_grad(self.robot, self.train_ctrl, walk, loss, physics=self.physics(), config=rc)
+
+        def f(u, terrain, keys):
+            p, back = jax.vjp(lambda x: self.space.apply(x, self.params0), u)
+            (_, j), gp = vg(model, p, terrain, keys)
+            n = j.shape[0]
+            return (jnp.mean(j), j), jax.tree_util.tree_map(lambda x: x / n, back(gp)[0])
+
+        return f
 
 
 def mean_value_and_grad(loss):
