@@ -232,6 +232,13 @@ def make_env_start(sm: SimModel, cfg: RolloutConfig, controller):
         d0 = mjx.forward(m_shared, d0)
         if sm.impl == "jax":
             d0 = stop_derived(d0)
+        if cfg.grad_clip is not None:
+            # Every leaf of the state one per env. Under `vmap` a leaf that starts equal for all envs and never
+            # reads an env's data (the gait clock, Data.time) stays one unbatched value, and reverse mode sums its
+            # cotangent over the batch: the per-env bound (`clip_cotangent`) then saw that batch sum in its norm
+            # and bound each env by the others (docs/tuning.md, 2026-11-27). Adding the env's own zero batches it.
+            zero = 0.0 * yaw0
+            d0, cstate0 = jax.tree_util.tree_map(lambda x: x + zero.astype(jnp.asarray(x).dtype), (d0, cstate0))
         # the range sensor's noise (controllers with a `sensor` only: other programs stay as they were)
         k_sense = jax.random.fold_in(key, 1) if getattr(controller, "sensor", None) is not None else None
         return (d0, cstate0, acc0), ctrl0, k_sense
