@@ -84,10 +84,7 @@ def _compiled(robot: RobotSpec, physics: PhysicsConfig, sensors: SensorConfig, c
 
     def batched(m_shared, params, terrain, keys, d_template=None, pert=None):
         run = jax.vmap(single, in_axes=(None, 0 if params_batched else None, 0, 0, None, 0 if perturbed else None))
-        # how MJX's constraint solve is traced (`RolloutConfig.solver_grad`)
-        solve = {"unrolled": lambda: reversible_solver(physics.iterations),
-                 "implicit": implicit_solver}.get(cfg.solver_grad, contextlib.nullcontext)
-        with solve():
+        with solver_context(cfg, physics):
             return run(m_shared, params, terrain, keys, d_template, pert)
 
     if mesh is not None:
@@ -115,7 +112,15 @@ def _compiled(robot: RobotSpec, physics: PhysicsConfig, sensors: SensorConfig, c
     return sm, Compiled(jax.jit(batched if mesh is None else sharded), static=static)
 
 
-def _check_static(robot: RobotSpec, controller, duration, physics: PhysicsConfig, config: RolloutConfig) -> int:
+def solver_context(cfg: RolloutConfig, physics: PhysicsConfig):
+    """The context under which MJX's constraint solve is traced as `cfg.solver_grad` says: its Newton iterations
+    as a scan ('unrolled'), implicit differentiation ('implicit'), or MJX's own while loop ('none')."""
+    if cfg.solver_grad == "unrolled":
+        return reversible_solver(physics.iterations)
+    return implicit_solver() if cfg.solver_grad == "implicit" else contextlib.nullcontext()
+
+
+def check_static(robot: RobotSpec, controller, duration, physics: PhysicsConfig, config: RolloutConfig) -> int:
     """Host-side checks of what a compiled rollout is specialised on; returns the control steps."""
     robot.validate(); physics.validate(); config.validate()
     if not isinstance(controller, Controller):
@@ -155,7 +160,7 @@ def rollout(robot: RobotSpec, terrain: Terrain, controller: Controller, params, 
     `Summary` with leading axis B, or (Summary, RolloutStats) with `stats`.
     All inputs are checked on the host before anything is traced."""
     t0 = time.perf_counter()
-    n_ctrl = _check_static(robot, controller, duration, physics, config)
+    n_ctrl = check_static(robot, controller, duration, physics, config)
     if backend not in BACKENDS:
         raise ValueError(f"backend={backend!r}: use one of {BACKENDS}")
     if backend != "mjx" and (config.solver_grad != "none" or config.grad_window or config.grad_clip is not None
@@ -229,7 +234,7 @@ def rollout_function(robot: RobotSpec, controller: Controller, duration: float, 
     compiled program that `rollout` runs, kept on disk (`hexjax.sim.compiled`), to call with arrays, not
     inside a transformation. perturbed=True: fn(model, params, terrain, keys, None, perturbation) takes a
     batched `Perturbation` as well (differentiable in its float fields)."""
-    n_ctrl = _check_static(robot, controller, duration, physics, config)
+    n_ctrl = check_static(robot, controller, duration, physics, config)
     sm, fn = _compiled(robot, physics, sensors, controller, config, n_ctrl, params_batched, "jax", perturbed)
     return sm.mjx_model, (fn if kept else fn.jitted)
 

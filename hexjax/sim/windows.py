@@ -26,7 +26,6 @@ arithmetic: it pays where a device has room for B x K envs at once (2.7x on an H
 
 from __future__ import annotations
 
-import contextlib
 import math
 
 import jax
@@ -34,9 +33,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from hexjax.sim.config import PhysicsConfig, RolloutConfig, SensorConfig
-from hexjax.sim.implicit import implicit_solver
-from hexjax.sim.model import reversible_solver, sim_model
-from hexjax.sim.rollout import _check_static as check_static
+from hexjax.sim.model import sim_model
+from hexjax.sim.rollout import check_static, solver_context
 from hexjax.sim.step import GRAD_FIELDS, Summary, end_pose, make_control_step, make_env_start, settle_steps
 
 # accumulators that are running extremes, not sums: a window's end passes their cotangent on only if the
@@ -63,27 +61,26 @@ def _floats(tree):
     return [x for x, m in zip(leaves, mask) if m], rebuild
 
 
+def _part(path, x) -> int:
+    """Which of `_data_parts`'s lists an mjx.Data leaf belongs to: 0 state, 1 fixed, 2 derived."""
+    if not _is_float(x):
+        return 1
+    return 0 if jax.tree_util.keystr(path) in GRAD_FIELDS else 2
+
+
 def _data_parts(d):
     """(state, fixed, derived) leaf lists of one env's mjx.Data: the float fields of `GRAD_FIELDS`, the
     non-float fields, every other float field (recomputed by the next step from the first two)."""
-    state, fixed, derived = [], [], []
+    parts = ([], [], [])
     for path, x in jax.tree_util.tree_flatten_with_path(d)[0]:
-        if not _is_float(x):
-            fixed.append(x)
-        elif jax.tree_util.keystr(path) in GRAD_FIELDS:
-            state.append(x)
-        else:
-            derived.append(x)
-    return state, fixed, derived
+        parts[_part(path, x)].append(x)
+    return parts
 
 
 def _assemble(like, state, fixed, derived):
     """The mjx.Data of `like`'s structure from its three parts (`_data_parts`)."""
     its = (iter(state), iter(fixed), iter(derived))
-    leaves = []
-    for path, x in jax.tree_util.tree_flatten_with_path(like)[0]:
-        part = 1 if not _is_float(x) else 0 if jax.tree_util.keystr(path) in GRAD_FIELDS else 2
-        leaves.append(next(its[part]))
+    leaves = [next(its[_part(path, x)]) for path, x in jax.tree_util.tree_flatten_with_path(like)[0]]
     return jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(like), leaves)
 
 
@@ -109,8 +106,6 @@ def windowed_value_and_grad(robot, controller, duration: float, loss, *, physics
     k_win = math.ceil(t_all / w)
     step = make_control_step(sm, sensors, config, controller, n_settle)
     start, settle_action = make_env_start(sm, config, controller)
-    solve = {"unrolled": lambda: reversible_solver(physics.iterations),
-             "implicit": implicit_solver}.get(config.solver_grad, contextlib.nullcontext)
     p_axis = 0 if params_batched else None
 
     def forward_env(m, params, terrain, key):
@@ -153,7 +148,7 @@ def windowed_value_and_grad(robot, controller, duration: float, loss, *, physics
         return gsum
 
     def f(m, params, terrain, keys):
-        with solve():
+        with solver_context(config, physics):
             final, kept, derived0, k_sense = jax.vmap(forward_env, in_axes=(None, p_axis, 0, 0))(
                 m, params, terrain, keys)
             d_f, cs_f, acc_f = final
@@ -186,12 +181,12 @@ def windowed_value_and_grad(robot, controller, duration: float, loss, *, physics
                     return jnp.where(ends == final[:, None], ct, 0.0)
                 return ct
 
-            ct_st = [jnp.where(last.reshape((1, -1) + (1,) * (c.ndim - 1)), at_end(c), 0.0) for c in ct_fin[0]]
-            ct_cs = jax.tree_util.tree_map(
-                lambda c: jnp.where(last.reshape((1, -1) + (1,) * (c.ndim - 1)), at_end(c), 0.0)
-                if _is_float(c) else c, ct_fin[1])
+            def at_last(c):
+                return jnp.where(last.reshape((1, -1) + (1,) * (c.ndim - 1)), at_end(c), 0.0) if _is_float(c) else c
+
+            ct_state = jax.tree_util.tree_map(at_last, ct_fin[:2])  # Data's state leaves and the controller's
             ct_acc = {n: (at_end(c, n, acc_ends[n], acc_f[n]) if _is_float(c) else c) for n, c in ct_fin[2].items()}
-            ct_end = _floats((ct_st, ct_cs, ct_acc))[0]
+            ct_end = _floats((*ct_state, ct_acc))[0]
 
             # the kept inputs as (B, K, W, ...): the last window padded with copies of the last step
             def windows(a):

@@ -132,20 +132,18 @@ class Problem:
                       settle_time: Optional[float] = None):
         """(model, fn) of the smooth rollout; `grad` adds the truncation, bound and remat. `duration`,
         `settle_time` (s): instead of the config's walk and RolloutConfig's settling (scripts/profile_grad.py)."""
-        rc = self._grad_config(settle_time)[1] if grad else RolloutConfig()
-        if settle_time is not None:
-            rc = dataclasses.replace(rc, settle_time=settle_time)
+        rc = self._rollout_config(grad, settle_time)
         return rollout_function(self.robot, self.train_ctrl, self.duration if duration is None else duration,
                                 physics=self.physics(), config=rc, params_batched=params_batched)
 
-    def _grad_config(self, settle_time: Optional[float] = None):
-        """(window in control steps, RolloutConfig) of the gradient rollout."""
-        window = max(1, int(round(self.cfg.window / self.train_ctrl.dt)))
-        rc = RolloutConfig(grad_clip=self.cfg.grad_clip, grad_window=window, remat=True,
-                           solver_grad=self.cfg.solver_grad, unroll_substeps=self.cfg.unroll_substeps)
-        if settle_time is not None:
-            rc = dataclasses.replace(rc, settle_time=settle_time)
-        return window, rc
+    def _rollout_config(self, grad: bool, settle_time: Optional[float] = None) -> RolloutConfig:
+        """The training rollout's config; `grad` adds the truncation, bound and remat."""
+        rc = RolloutConfig()
+        if grad:
+            window = max(1, int(round(self.cfg.window / self.train_ctrl.dt)))
+            rc = RolloutConfig(grad_clip=self.cfg.grad_clip, grad_window=window, remat=True,
+                               solver_grad=self.cfg.solver_grad, unroll_substeps=self.cfg.unroll_substeps)
+        return rc if settle_time is None else dataclasses.replace(rc, settle_time=settle_time)
 
     def hard_rollout(self, params_batched: bool = False):
         """(model, fn) of the hard form as a pure jitted function (for CMA-ES on the evaluated objective,
@@ -198,7 +196,7 @@ class Problem:
     def parallel_value_and_grad(self, duration: Optional[float] = None, settle_time: Optional[float] = None):
         """The same f(u, terrain, keys) as `value_and_grad`, its gradient taken with the windows' backward passes
         side by side (`hexjax.sim.windows`): the gradient of sum J over the batch, divided by its size."""
-        _, rc = self._grad_config(settle_time)
+        rc = self._rollout_config(True, settle_time)
         loss = lambda s: per_env_objective(s, self.cfg.distance, self.cfg.objective)
         walk = self.duration if duration is None else duration
         model, vg = windowed_value_and_grad(self.robot, self.train_ctrl, walk, loss, physics=self.physics(), config=rc)
