@@ -26,6 +26,7 @@ SLOW_FIRST = ("test_every_backend_honours_the_same_draws", "test_cpg_gradient_ma
               "test_families_walkable_at_zero_and_harder_with_difficulty",
               "test_tuning_is_deterministic_and_resumes", "test_two_processes_give_the_per_env_numbers_of_one",
               "test_brax_ppo_trains", "test_gradient_matches_central_differences_per_group",
+              "test_parallel_windows_give_the_scans_gradient",
               "test_converged_jacobian_matches_unrolled_and_central_differences",
               "test_es_baseline_improves", "test_smooth_rollout_tends_to_hard_rollout",
               "test_evaluate_obstacles_lose_distance",

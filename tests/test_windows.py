@@ -7,9 +7,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from hexjax.sim import implicit
 from hexjax.sim.compiled import Compiled, arrays_digest
 from hexjax.sim.config import RolloutConfig, physics_for
+from hexjax.sim.model import sim_model
 from hexjax.sim.rollout import rollout_function
+from hexjax.sim.step import physics
 from hexjax.sim.windows import windowed_value_and_grad
 from hexjax.tune.gradcheck import check_batch, tactile_check_setting
 from hexjax.world.presets import get_terrain, luneckas2020
@@ -64,6 +67,47 @@ def test_parallel_windows_give_the_scans_gradient():
     scale = np.max(np.abs(a))
     assert scale > 0.1, a  # the params move the loss: a zero gradient would pass any comparison
     assert np.max(np.abs(a - b)) <= 1e-3 * scale, (a, b)
+
+
+def _whiles(jaxpr) -> int:
+    """`while` loops in a jaxpr, its sub-jaxprs included (MJX's solver is one; its line search is a scan)."""
+    n = 0
+    for e in jaxpr.eqns:
+        n += e.primitive.name == "while"
+        for v in e.params.values():
+            for x in (v if isinstance(v, (list, tuple)) else [v]):
+                sub = getattr(x, "jaxpr", x)
+                if hasattr(sub, "eqns"):
+                    n += _whiles(sub)
+    return n
+
+
+def test_a_kept_solution_replaces_the_solve():
+    """Through `hexjax.sim.implicit.solutions`, a control step's physics keeps each substep's constraint
+    solution, and given them back it runs no solver (the windows' backward passes take the forward's solutions,
+    so they do not solve a second time) and reaches the same state."""
+    robot = luneckas2020()
+    phys = physics_for("flat")
+    sm = sim_model(robot, phys, "jax")
+    m = sm.mjx_model
+    d0 = sm.init_data(jnp.zeros(3))
+    d0 = d0.replace(qpos=d0.qpos.at[2].add(-0.005))  # the feet 5 mm into the ground: contact forces push back
+
+    def keep(d):
+        with implicit.implicit_solver(), implicit.solutions() as channel:
+            d, _ = physics(m, d, 4, stop=True)
+        return d.qpos, channel["kept"]
+
+    def given(d, solved):
+        with implicit.implicit_solver(), implicit.solutions(solved):
+            d, _ = physics(m, d, 4, stop=True)
+        return d.qpos
+
+    qpos, solved = jax.jit(keep)(d0)
+    assert solved[0].shape == (4, m.nv) and float(jnp.max(jnp.abs(solved[1]))) > 1.0  # contact forces act
+    assert _whiles(jax.make_jaxpr(keep)(d0).jaxpr) == 1
+    assert _whiles(jax.make_jaxpr(given)(d0, solved).jaxpr) == 0
+    np.testing.assert_array_equal(np.asarray(jax.jit(given)(d0, solved)), np.asarray(qpos))
 
 
 def test_parallel_backward_refuses_forward_only_settings():

@@ -150,16 +150,62 @@ def _attach(m, d, a_star, frc, efc):
     return attach([xs[k] for k in fl], [xs[k] for k in ints], a_star, frc, efc)
 
 
+# The solution channel, open only while tracing (`solutions`): one dict per traced physics step, through which
+# `implicit_solve` hands out the solution it computed ("kept") or takes one computed before ("given") instead
+# of running the solver. `hexjax.sim.windows` keeps each physics step's solution in its forward rollout and
+# gives it back when its backward pass runs the step again, so that pass does not solve a second time.
+_SLOTS: list = []  # one per traced mjx.step (`solution_slot`)
+_STEPS: list = []  # one per traced control step (`solutions`)
+
+
+@contextlib.contextmanager
+def _channel(stack: list, given):
+    channel = {"given": given, "kept": None}
+    stack.append(channel)
+    try:
+        yield channel
+    finally:
+        stack.pop()
+
+
+def solution_slot(given=None):
+    """While open (around the trace of one `mjx.step`), `implicit_solve` takes `given` = (qacc, qfrc_constraint,
+    efc_force) as the solve's solution, or with `given=None` records the one it computes in the slot's "kept"
+    (None if the step solved nothing: no constraint rows)."""
+    return _channel(_SLOTS, given)
+
+
+def solutions(given=None):
+    """While open (around the trace of one control step), `hexjax.sim.step.physics` runs each of its substeps in
+    a `solution_slot`: with `given=None` it stacks the substeps' solutions into the channel's "kept" (leading axis
+    the substep), and with `given` (so stacked) each substep takes its own. Only the implicit solve
+    (`implicit_solver`) reads or fills the slots."""
+    return _channel(_STEPS, given)
+
+
+def solutions_channel():
+    """The innermost open `solutions` channel, or None."""
+    return _STEPS[-1] if _STEPS else None
+
+
 def implicit_solve(m, d):
     """MJX's `solver.solve(m, d)` in value; its derivative by the implicit function theorem (module docstring).
-    Pyramidal cone only (hexjax's physics; `PhysicsConfig.cone`)."""
+    Pyramidal cone only (hexjax's physics; `PhysicsConfig.cone`). Inside a `solution_slot` with a given
+    solution the solver does not run: the step takes that solution, with the same derivative."""
     if m.opt.cone != ConeType.PYRAMIDAL:
         raise ValueError("RolloutConfig.solver_grad='implicit' supports the pyramidal friction cone only")
-    with jax.named_scope("hx.solve_mjx"):  # scopes name the pieces in profiles (scripts/profile_grad.py)
-        out = _MJX_SOLVE(_stop(m), _stop(d))
-    # named, so that a rematerialised step (`RolloutConfig.remat`, policy `REMAT_POLICY`) keeps the solution
-    # and does not run the solver's iterations again in the backward pass
-    a_star, frc, efc = (checkpoint_name(x, SOLUTION) for x in (out.qacc, out.qfrc_constraint, out._impl.efc_force))
+    slot = _SLOTS[-1] if _SLOTS else None
+    if slot is not None and slot["given"] is not None:
+        a_star, frc, efc = (jax.lax.stop_gradient(x) for x in slot["given"])
+    else:
+        with jax.named_scope("hx.solve_mjx"):  # scopes name the pieces in profiles (scripts/profile_grad.py)
+            out = _MJX_SOLVE(_stop(m), _stop(d))
+        # named, so that a rematerialised step (`RolloutConfig.remat`, policy `REMAT_POLICY`) keeps the solution
+        # and does not run the solver's iterations again in the backward pass
+        a_star, frc, efc = (checkpoint_name(x, SOLUTION) for x in (out.qacc, out.qfrc_constraint,
+                                                                    out._impl.efc_force))
+        if slot is not None:
+            slot["kept"] = (a_star, frc, efc)
     qacc, frc, efc = _attach(m, d, a_star, frc, efc)
     # every other field from the live `d`: `out` was made from the stopped copy
     return d.tree_replace({"qacc": qacc, "qfrc_constraint": frc, "_impl.efc_force": efc})

@@ -20,7 +20,7 @@ import jax.numpy as jnp
 from flax import struct
 
 from hexjax.perceive import raycast
-from hexjax.sim import perturb
+from hexjax.sim import implicit, perturb
 from hexjax.sim.config import PhysicsConfig, RolloutConfig, SensorConfig
 from hexjax.sim.grad import clip_cotangent, cut_gradient
 from hexjax.sim.model import SimModel, assign_slots, env_model, mjx, obs_from_sensordata, place_static_geoms, read_obs
@@ -194,7 +194,20 @@ def physics(m, d, n_sub: int, stop: bool = False, unroll: bool = False):
         power = jnp.sum(jnp.abs(dd.actuator_force * dd.qvel[6:]))
         return (stop_derived(dd) if stop else dd), power
 
-    return jax.lax.scan(sub, d, None, length=n_sub, unroll=unroll)
+    channel = implicit.solutions_channel()
+    if channel is None:
+        return jax.lax.scan(sub, d, None, length=n_sub, unroll=unroll)
+
+    # inside `hexjax.sim.implicit.solutions` (the windowed backward, `hexjax.sim.windows`): each substep's
+    # constraint solution is kept, or taken from those kept before
+    def sub_channel(dd, given):
+        with implicit.solution_slot(given) as slot:
+            dd, power = sub(dd, None)
+        return dd, (power, slot["kept"])
+
+    d, (power, kept) = jax.lax.scan(sub_channel, d, channel["given"], length=n_sub, unroll=unroll)
+    channel["kept"] = kept
+    return d, power
 
 
 def keep_finite(d_new, d, warp: bool = False):

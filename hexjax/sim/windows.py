@@ -18,20 +18,25 @@ Here the same gradient is taken in two phases inside one program:
    and the last window that of the end state as well.
 
 The value is the rollout's and the gradient that of reverse mode through the rollout's scan with the same
-config, to float32 rounding (`tests/test_windows.py`), with a backward pass W steps long instead of T. Its cost
-per control step is a forward step with its solver (the checkpointed scan instead recomputes the step without
-the solver, `hexjax.sim.implicit.REMAT_POLICY`) and its transpose. What it saves is time in a row, not
-arithmetic: it pays where a device has room for B x K envs at once (2.7x on an H100 at B = 256; docs/tuning.md).
+config, to float32 rounding (`tests/test_windows.py`), with a backward pass W steps long instead of T. With the
+implicit solve the forward also keeps each physics step's constraint solution (qacc, the joint and the row
+forces: a few hundred floats a physics step and env), and the backward's steps take it in place of solving
+again (`hexjax.sim.implicit.solutions`; the checkpointed scan does the same through
+`hexjax.sim.implicit.REMAT_POLICY`), so a backward control step costs a forward one without its solver, plus its
+transpose. What the form saves is time in a row, not arithmetic: it pays where a device has room for B x K envs
+at once (2.7x on an H100 at B = 256; docs/tuning.md).
 """
 
 from __future__ import annotations
 
+import contextlib
 import math
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from hexjax.sim import implicit
 from hexjax.sim.config import PhysicsConfig, RolloutConfig, SensorConfig
 from hexjax.sim.model import sim_model
 from hexjax.sim.rollout import check_static, solver_context
@@ -86,12 +91,15 @@ def _assemble(like, state, fixed, derived):
 
 def windowed_value_and_grad(robot, controller, duration: float, loss, *, physics: PhysicsConfig = PhysicsConfig(),
                             sensors: SensorConfig = SensorConfig(), config: RolloutConfig = RolloutConfig(),
-                            params_batched: bool = False, max_parallel: int = MAX_PARALLEL):
+                            params_batched: bool = False, max_parallel: int = MAX_PARALLEL,
+                            keep_solutions: bool = True):
     """(model, f) with f(model, params, terrain, keys) -> ((summary, J), grad): the rollout's `Summary` (B envs),
     J = loss(summary) (B,) and the gradient of sum(J) in params (the params' structure, summed over envs; with
     `params_batched`, per env), through the windowed backward passes side by side (module docstring).
     duration: seconds of control after settling; config: the gradient rollout's (`grad_window`, `grad_clip`,
-    `solver_grad`; `remat` has no effect here, nothing is stored but each step's input state)."""
+    `solver_grad`; `remat` has no effect here, nothing is stored but each step's input state). With
+    `solver_grad='implicit'` and `keep_solutions` the forward also keeps each physics step's constraint solution,
+    and the backward's steps take it instead of solving again (`hexjax.sim.implicit.solutions`)."""
     n_ctrl = check_static(robot, controller, duration, physics, config)
     if config.record or config.progress_every:
         raise ValueError("windowed_value_and_grad: rollout.record and rollout.progress_every are forward-only "
@@ -107,6 +115,10 @@ def windowed_value_and_grad(robot, controller, duration: float, loss, *, physics
     step = make_control_step(sm, sensors, config, controller, n_settle)
     start, settle_action = make_env_start(sm, config, controller)
     p_axis = 0 if params_batched else None
+    keep = keep_solutions and config.solver_grad == "implicit"
+
+    def kept_solutions(given=None):
+        return implicit.solutions(given) if keep else contextlib.nullcontext({"kept": None})
 
     def forward_env(m, params, terrain, key):
         carry0, ctrl0, k_sense = start(m, params, key)
@@ -114,8 +126,9 @@ def windowed_value_and_grad(robot, controller, duration: float, loss, *, physics
         def body(carry, i):
             d, cs, acc = carry
             state, fixed, _ = _data_parts(d)
-            carry, _ = step(carry, i, params, terrain, m, ctrl0, None, k_sense)
-            return carry, (state, fixed, cs, acc)
+            with kept_solutions() as channel:
+                carry, _ = step(carry, i, params, terrain, m, ctrl0, None, k_sense)
+            return carry, (state, fixed, cs, acc, channel["kept"])
 
         final, kept = jax.lax.scan(body, carry0, jnp.arange(t_all))
         return final, kept, _data_parts(carry0[0])[2], k_sense
@@ -127,14 +140,15 @@ def windowed_value_and_grad(robot, controller, duration: float, loss, *, physics
         def rev(carry, j):
             ct, gsum = carry
             i = k * w + j
-            state, fixed, cs, acc = jax.tree_util.tree_map(lambda a: a[j], kept_w)
+            state, fixed, cs, acc, solved = jax.tree_util.tree_map(lambda a: a[j], kept_w)
             x_fl, x_rebuild = _floats((state, cs, acc))
 
             def f(pf, xf):
                 p = p_rebuild(pf)
                 st, c, a = x_rebuild(xf)
                 d = _assemble(like, st, fixed, derived0)
-                (nd, nc, na), _ = step((d, c, a), i, p, terrain, m, settle_action(p), None, k_sense)
+                with kept_solutions(solved):
+                    (nd, nc, na), _ = step((d, c, a), i, p, terrain, m, settle_action(p), None, k_sense)
                 return _floats((_data_parts(nd)[0], nc, na))[0]
 
             _, vjp = jax.vjp(f, p_fl, x_fl)
