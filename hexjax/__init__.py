@@ -13,10 +13,25 @@ from hexjax import cache as _cache
 # block_until_ready forever: 3 of 5 runs on 2 cores with jax 0.10.2. Neither async dispatch off,
 # single-threaded Eigen, nor replacing lax.top_k cured it; this flag did. It must be set before jax
 # creates its CPU client; HEXJAX_KEEP_XLA_FLAGS=1 leaves XLA_FLAGS untouched.
+#
+# XLA:CPU in jaxlib 0.11 hands reductions to YNNPACK ("ynn_fusion" kernels); for MJX's many small per-env
+# reductions its kernels ran 3-5x slower than XLA's own loops (the constraint solver's sums dominated a CPU
+# profile). Without them (`-reduce`) a B = 1,024 rollout ran 14-33 % faster and a B = 64 one 35 %; the values
+# move at float32 rounding (summation order; docs/modelling.md, docs/benchmarks.md 2026-11-27). The flag is
+# ignored by the GPU backends; it is set on jaxlib 0.11 only, where it was measured and where XLA knows it.
+_DEFAULT_FLAGS = {"xla_cpu_enable_concurrency_optimized_scheduler": "false"}
+try:
+    from importlib.metadata import version as _version
+    if _version("jaxlib").startswith("0.11."):
+        _DEFAULT_FLAGS["xla_cpu_experimental_ynn_fusion_type"] = "-reduce"
+except Exception:  # jaxlib's metadata missing: leave XLA's defaults
+    pass
 if not _os.environ.get("HEXJAX_KEEP_XLA_FLAGS"):
     _flags = _os.environ.get("XLA_FLAGS", "")
-    if "xla_cpu_enable_concurrency_optimized_scheduler" not in _flags:
-        _os.environ["XLA_FLAGS"] = (_flags + " --xla_cpu_enable_concurrency_optimized_scheduler=false").strip()
+    for _name, _value in _DEFAULT_FLAGS.items():
+        if _name not in _flags:
+            _flags = f"{_flags} --{_name}={_value}".strip()
+    _os.environ["XLA_FLAGS"] = _flags
 
 
 # jaxlib 0.10.x split each batched LAPACK call (MJX's Cholesky, the implicit backward's solves) over XLA:CPU's

@@ -42,17 +42,22 @@ def test_concurrent_batched_lapack_calls_finish():
 _FLAGS = "import os, hexjax; print(os.environ.get('XLA_FLAGS', ''))"
 
 
+_SCHED = "--xla_cpu_enable_concurrency_optimized_scheduler=false"
+_YNN = "--xla_cpu_experimental_ynn_fusion_type=-reduce"
+
+
 @pytest.mark.parametrize("given,keep,expect", [
-    ("", "", ["--xla_cpu_enable_concurrency_optimized_scheduler=false"]),
-    ("--xla_force_host_platform_device_count=2", "",
-     ["--xla_force_host_platform_device_count=2", "--xla_cpu_enable_concurrency_optimized_scheduler=false"]),
+    ("", "", [_SCHED, _YNN]),
+    ("--xla_force_host_platform_device_count=2", "", ["--xla_force_host_platform_device_count=2", _SCHED, _YNN]),
     ("--xla_cpu_enable_concurrency_optimized_scheduler=true", "",
-     ["--xla_cpu_enable_concurrency_optimized_scheduler=true"]),
+     ["--xla_cpu_enable_concurrency_optimized_scheduler=true", _YNN]),
+    ("--xla_cpu_experimental_ynn_fusion_type=-dot", "", ["--xla_cpu_experimental_ynn_fusion_type=-dot", _SCHED]),
     ("--xla_force_host_platform_device_count=2", "1", ["--xla_force_host_platform_device_count=2"]),
 ])
 def test_import_adds_the_scheduler_flag_unless_told_not_to(given, keep, expect):
-    """`import hexjax` adds its XLA:CPU scheduler setting (hexjax/__init__.py, docs/modelling.md) to the user's
-    XLA_FLAGS, keeps a user's own choice of it, and leaves XLA_FLAGS alone with HEXJAX_KEEP_XLA_FLAGS=1."""
+    """`import hexjax` adds its XLA:CPU settings (the scheduler, YNNPACK's reductions off; hexjax/__init__.py,
+    docs/modelling.md) to the user's XLA_FLAGS, keeps a user's own choice of either, and leaves XLA_FLAGS alone
+    with HEXJAX_KEEP_XLA_FLAGS=1."""
     env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "HEXJAX_KEEP_XLA_FLAGS")}
     env.update(XLA_FLAGS=given, HEXJAX_CACHE_DIR="off")
     if keep:
