@@ -14,11 +14,11 @@ from hexjax import cache as _cache
 # single-threaded Eigen, nor replacing lax.top_k cured it; this flag did. It must be set before jax
 # creates its CPU client; HEXJAX_KEEP_XLA_FLAGS=1 leaves XLA_FLAGS untouched.
 #
-# XLA:CPU in jaxlib 0.11 hands reductions to YNNPACK ("ynn_fusion" kernels); for MJX's many small per-env
-# reductions its kernels ran 3-5x slower than XLA's own loops (the constraint solver's sums dominated a CPU
-# profile). Without them (`-reduce`) a B = 1,024 rollout ran 14-33 % faster and a B = 64 one 35 %; the values
-# move at float32 rounding (summation order; docs/modelling.md, docs/benchmarks.md 2026-11-27). The flag is
-# ignored by the GPU backends; it is set on jaxlib 0.11 only, where it was measured and where XLA knows it.
+# XLA:CPU in jaxlib 0.11 hands reductions to YNNPACK ("ynn_fusion" kernels); in a CPU profile of the tuning
+# objective three of them, inside MJX's constraint solver, took more time than the rest of the step. Without them
+# (`-reduce`) `make bench`'s rollouts ran 39-55 % faster at B = 64 and 256, a tactile one at B = 1,024 21-33 %;
+# values move at float32 rounding (summation order; docs/modelling.md, docs/benchmarks.md 2026-11-27). GPU
+# backends ignore the flag; it is set on jaxlib 0.11 only, where it was measured and where XLA knows it.
 _DEFAULT_FLAGS = {"xla_cpu_enable_concurrency_optimized_scheduler": "false"}
 try:
     from importlib.metadata import version as _version
