@@ -20,11 +20,12 @@ from hexjax import cache as _cache
 # values move at float32 rounding (summation order; docs/modelling.md, docs/benchmarks.md 2026-11-27). GPU
 # backends ignore the flag; it is set on jaxlib 0.11 only, where it was measured and where XLA knows it.
 _DEFAULT_FLAGS = {"xla_cpu_enable_concurrency_optimized_scheduler": "false"}
+from importlib import metadata as _metadata
+
 try:
-    from importlib.metadata import version as _version
-    if _version("jaxlib").startswith("0.11."):
+    if _metadata.version("jaxlib").startswith("0.11."):
         _DEFAULT_FLAGS["xla_cpu_experimental_ynn_fusion_type"] = "-reduce"
-except Exception:  # jaxlib's metadata missing: leave XLA's defaults
+except _metadata.PackageNotFoundError:  # no jaxlib metadata: leave XLA's defaults
     pass
 if not _os.environ.get("HEXJAX_KEEP_XLA_FLAGS"):
     _flags = _os.environ.get("XLA_FLAGS", "")
