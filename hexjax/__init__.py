@@ -5,6 +5,7 @@ The public names below load on first use, so `import hexjax` (and `hexjax --help
 
 import importlib as _importlib
 import os as _os
+from importlib import metadata as _metadata
 
 from hexjax import cache as _cache
 
@@ -20,8 +21,6 @@ from hexjax import cache as _cache
 # values move at float32 rounding (summation order; docs/modelling.md, docs/benchmarks.md 2026-11-27). GPU
 # backends ignore the flag; it is set on jaxlib 0.11 only, where it was measured and where XLA knows it.
 _DEFAULT_FLAGS = {"xla_cpu_enable_concurrency_optimized_scheduler": "false"}
-from importlib import metadata as _metadata
-
 try:
     if _metadata.version("jaxlib").startswith("0.11."):
         _DEFAULT_FLAGS["xla_cpu_experimental_ynn_fusion_type"] = "-reduce"

@@ -54,7 +54,7 @@ _YNN = "--xla_cpu_experimental_ynn_fusion_type=-reduce"
     ("--xla_cpu_experimental_ynn_fusion_type=-dot", "", ["--xla_cpu_experimental_ynn_fusion_type=-dot", _SCHED]),
     ("--xla_force_host_platform_device_count=2", "1", ["--xla_force_host_platform_device_count=2"]),
 ])
-def test_import_adds_the_scheduler_flag_unless_told_not_to(given, keep, expect):
+def test_import_adds_its_xla_flags_unless_told_not_to(given, keep, expect):
     """`import hexjax` adds its XLA:CPU settings (the scheduler, YNNPACK's reductions off; hexjax/__init__.py,
     docs/modelling.md) to the user's XLA_FLAGS, keeps a user's own choice of either, and leaves XLA_FLAGS alone
     with HEXJAX_KEEP_XLA_FLAGS=1."""
