@@ -223,3 +223,28 @@ def test_unrolled_physics_steps_give_the_same_state(standing):
     assert np.abs(v0[:3] - np.asarray(d.qpos[:3])).max() > 1e-6  # the steps moved the robot
     # XLA fuses the loop body and the unrolled steps differently: equal to float32 rounding (measured 1.3e-5)
     np.testing.assert_allclose(v1, v0, rtol=1e-4, atol=1e-5)
+
+
+def test_rotation_rule_keeps_mjx_values_and_derivative():
+    """`hexjax.sim.model.rotation_rule`, under which every rollout that reverse mode goes through is traced: MJX's
+    rotation matrices bit for bit, their Jacobian (reverse and forward mode) equal to MJX's own, and MJX's function
+    back in place after the context, also when the body raises."""
+    from mujoco.mjx._src import math as mjx_math
+
+    from hexjax.sim.model import rotation_rule
+
+    mjx_q2m = mjx_math.quat_to_mat
+    q = jax.random.normal(jax.random.PRNGKey(3), (64, 4))
+    q = q.at[:48].set(q[:48] / jnp.linalg.norm(q[:48], axis=-1, keepdims=True))  # unit and non-unit quaternions
+    with rotation_rule():
+        ruled = mjx_math.quat_to_mat
+    assert ruled is not mjx_q2m and mjx_math.quat_to_mat is mjx_q2m
+    np.testing.assert_array_equal(jax.vmap(ruled)(q), jax.vmap(mjx_q2m)(q))
+    for jac in (jax.jacrev, jax.jacfwd):
+        got, want = jax.vmap(jac(ruled))(q), jax.vmap(jac(mjx_q2m))(q)
+        assert float(jnp.abs(want).max()) > 0.5
+        np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-6)
+    with pytest.raises(RuntimeError, match="inside"):
+        with rotation_rule():
+            raise RuntimeError("inside")
+    assert mjx_math.quat_to_mat is mjx_q2m

@@ -332,3 +332,44 @@ def reversible_solver(iterations: int):
         yield
     finally:
         solver.jax = prev
+
+
+def _rotation(p):
+    """The rotation matrix of a unit quaternion (w, x, y, z) from p(i, j), the (i, j) entry of q q^T; given the
+    entries of q dq^T + dq q^T instead, the same linear map gives the matrix's tangent."""
+    return jnp.array([[p(0, 0) + p(1, 1) - p(2, 2) - p(3, 3), 2 * (p(1, 2) - p(0, 3)), 2 * (p(1, 3) + p(0, 2))],
+                      [2 * (p(1, 2) + p(0, 3)), p(0, 0) - p(1, 1) + p(2, 2) - p(3, 3), 2 * (p(2, 3) - p(0, 1))],
+                      [2 * (p(1, 3) - p(0, 2)), 2 * (p(2, 3) + p(0, 1)), p(0, 0) - p(1, 1) - p(2, 2) + p(3, 3)]])
+
+
+def _quat_to_mat_with_rule(mjx_quat_to_mat):
+    """MJX's `math.quat_to_mat` with its values, and a derivative written per component. MJX forms q q^T and picks
+    16 of its entries; reverse mode turns every pick into a zero 4 x 4 array with one entry set, and sums them: 22
+    arrays of the batch's size for each body and geom frame of every physics step. On 2 CPU cores those pads and
+    sums took 11 % of the windowed gradient's kernel time (B = 64, docs/benchmarks.md 2026-11-27 fourth session).
+    Here reverse mode slices the 4 components of the tangent once."""
+    @jax.custom_jvp
+    def quat_to_mat(q):
+        return mjx_quat_to_mat(q)
+
+    @quat_to_mat.defjvp
+    def _jvp(primals, tangents):
+        (q,), (dq,) = primals, tangents
+        qs, ds = [q[i] for i in range(4)], [dq[i] for i in range(4)]
+        return mjx_quat_to_mat(q), _rotation(lambda i, j: qs[i] * ds[j] + ds[i] * qs[j])
+
+    return quat_to_mat
+
+
+@contextlib.contextmanager
+def rotation_rule():
+    """While open, MJX's kinematics (bodies', geoms' and sites' frames) call `_quat_to_mat_with_rule`'s
+    `quat_to_mat`: the same values, a cheaper reverse mode. Only tracing needs the context. Relies on MJX's
+    `smooth` and `support` modules calling `math.quat_to_mat` through the module (mujoco-mjx 3.17.0)."""
+    from mujoco.mjx._src import math as mjx_math
+    prev = mjx_math.quat_to_mat
+    mjx_math.quat_to_mat = _quat_to_mat_with_rule(prev)
+    try:
+        yield
+    finally:
+        mjx_math.quat_to_mat = prev
