@@ -343,11 +343,11 @@ def _rotation(p):
 
 
 def _quat_to_mat_with_rule(mjx_quat_to_mat):
-    """MJX's `math.quat_to_mat` with its values, and a derivative written per component. MJX forms q q^T and picks
-    16 of its entries; reverse mode turns every pick into a zero 4 x 4 array with one entry set, and sums them: 22
-    arrays of the batch's size for each body and geom frame of every physics step. On 2 CPU cores those pads and
-    sums took 11 % of the windowed gradient's kernel time (B = 64, docs/benchmarks.md 2026-11-27 fourth session).
-    Here reverse mode slices the 4 components of the tangent once."""
+    """MJX's `math.quat_to_mat` with its values, and a derivative written per component. MJX forms q q^T and reads
+    its entries 24 times (10 distinct ones); reverse mode turns every read into a zero 4 x 4 array with one entry
+    set, and sums them: 24 arrays of the batch's size for each body and geom frame of every physics step. On 2 CPU
+    cores those pads and sums took 11.5 % of the windowed gradient's kernel time (B = 64, docs/benchmarks.md
+    2026-11-27 fourth session). Here reverse mode slices the 4 components of the tangent once."""
     @jax.custom_jvp
     def quat_to_mat(q):
         return mjx_quat_to_mat(q)
