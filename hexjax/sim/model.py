@@ -342,34 +342,34 @@ def _rotation(p):
                       [2 * (p(1, 3) - p(0, 2)), 2 * (p(2, 3) + p(0, 1)), p(0, 0) - p(1, 1) - p(2, 2) + p(3, 3)]])
 
 
-def _quat_to_mat_with_rule(mjx_quat_to_mat):
+_MJX_QUAT_TO_MAT = mjx._src.math.quat_to_mat  # MJX's own, whatever `rotation_rule` patches in later
+
+
+@jax.custom_jvp
+def quat_to_mat(q):
     """MJX's `math.quat_to_mat` with its values, and a derivative written per component. MJX forms q q^T and reads
     its entries 24 times (10 distinct ones); reverse mode turns every read into a zero 4 x 4 array with one entry
     set, and sums them: 24 arrays of the batch's size for each body and geom frame of every physics step. On 2 CPU
     cores those pads and sums took 11.5 % of the windowed gradient's kernel time (B = 64, docs/benchmarks.md
     2026-11-27 fourth session). Here reverse mode slices the 4 components of the tangent once."""
-    @jax.custom_jvp
-    def quat_to_mat(q):
-        return mjx_quat_to_mat(q)
+    return _MJX_QUAT_TO_MAT(q)
 
-    @quat_to_mat.defjvp
-    def _jvp(primals, tangents):
-        (q,), (dq,) = primals, tangents
-        qs, ds = [q[i] for i in range(4)], [dq[i] for i in range(4)]
-        return mjx_quat_to_mat(q), _rotation(lambda i, j: qs[i] * ds[j] + ds[i] * qs[j])
 
-    return quat_to_mat
+@quat_to_mat.defjvp
+def _quat_to_mat_jvp(primals, tangents):
+    (q,), (dq,) = primals, tangents
+    qs, ds = [q[i] for i in range(4)], [dq[i] for i in range(4)]
+    return _MJX_QUAT_TO_MAT(q), _rotation(lambda i, j: qs[i] * ds[j] + ds[i] * qs[j])
 
 
 @contextlib.contextmanager
 def rotation_rule():
-    """While open, MJX's kinematics (bodies', geoms' and sites' frames) call `_quat_to_mat_with_rule`'s
-    `quat_to_mat`: the same values, a cheaper reverse mode. Only tracing needs the context. Relies on MJX's
-    `smooth` and `support` modules calling `math.quat_to_mat` through the module (mujoco-mjx 3.17.0)."""
-    from mujoco.mjx._src import math as mjx_math
-    prev = mjx_math.quat_to_mat
-    mjx_math.quat_to_mat = _quat_to_mat_with_rule(prev)
+    """While open, MJX's kinematics (bodies', geoms' and sites' frames) call `quat_to_mat` above: the same values,
+    a cheaper reverse mode. Only tracing needs the context. Relies on MJX's `smooth` and `support` modules calling
+    `math.quat_to_mat` through the module (mujoco-mjx 3.17.0)."""
+    prev = mjx._src.math.quat_to_mat
+    mjx._src.math.quat_to_mat = quat_to_mat
     try:
         yield
     finally:
-        mjx_math.quat_to_mat = prev
+        mjx._src.math.quat_to_mat = prev
