@@ -2,16 +2,20 @@
 
 Lowers each program once (the tactile_tripod objective, implicit backward, B = --batch) and compiles it once per
 option set with `Lowered.compile(compiler_options=...)`, so every set sees the same HLO. Prints one JSON line per
-(program, options): lowering s, XLA compile s and, with --run, env-steps/s (best of two calls after a warm-up);
+(program, options): tracing and lowering s (`lower_s`, of which `trace_s` is the tracing to a jaxpr), XLA compile
+s, the size of the lowered StableHLO text, the number of times MJX's `step` was traced for the program and, with
+--run, env-steps/s (best of two calls after a warm-up);
 gradient rows add the loss and the gradient's norm, so options that change the numbers show it. --json writes
 the rows (and each gradient as .npy beside it). Options are XLA DebugOptions fields, e.g.
-'{"xla_gpu_autotune_level": 0}'. Figures: docs/benchmarks.md, issue 19 (fifth session).
+'{"xla_gpu_autotune_level": 0}'. Figures: docs/benchmarks.md, issue 19 (2026-11-25, fifth session; the phases of
+each compile: 2026-11-27, fifth session).
 
     python scripts/compile_probe.py --batch 4096 --duration 3 --run --options '{}' '{"xla_gpu_autotune_level": 0}'
 """
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
 import time
@@ -21,8 +25,26 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 
 from hexjax.experiments.bench_grad import best_call, objective_program, physics_steps
-from hexjax.tune.config import load_tune_config
+from hexjax.sim.model import mjx
+from hexjax.tune.config import BACKWARDS, load_tune_config
 from hexjax.tune.objective import Problem
+
+
+@contextlib.contextmanager
+def _counting(module, name):
+    """Count the calls of `module.name` while the context is open (a one-element list); the function is restored
+    after."""
+    fn, n = getattr(module, name), [0]
+
+    def counted(*args, **kw):
+        n[0] += 1
+        return fn(*args, **kw)
+
+    setattr(module, name, counted)
+    try:
+        yield n
+    finally:
+        setattr(module, name, fn)
 
 
 def main():
@@ -32,11 +54,12 @@ def main():
     ap.add_argument("--modes", default="forward,grad", help="programs: comma list of forward, grad")
     ap.add_argument("--run", action="store_true", help="also time each compiled program")
     ap.add_argument("--unroll-substeps", action="store_true", help="the tuning key unroll_substeps")
+    ap.add_argument("--backward", default="sequential", choices=BACKWARDS, help="the tuning key backward")
     ap.add_argument("--duration", type=float, default=None, help="walk s instead of the config's (9 s)")
     ap.add_argument("--json", default=None, help="write the rows here")
     a = ap.parse_args()
     cfg = load_tune_config("tactile_tripod", {"unroll_substeps": True} if a.unroll_substeps else None)
-    p = Problem.build(dataclasses.replace(cfg, solver_grad="implicit"))
+    p = Problem.build(dataclasses.replace(cfg, solver_grad="implicit", backward=a.backward))
     n_phys = physics_steps(p, a.duration)
     u0 = p.space.init(p.params0)
     terr, keys = p.train_batch(0, a.batch)
@@ -44,14 +67,19 @@ def main():
     for mode in a.modes.split(","):
         t0 = time.perf_counter()
         f = objective_program(p, grad=mode != "forward", duration=a.duration)
-        low = f.lower(u0, terr, keys)
+        with _counting(mjx, "step") as traced:
+            tr = f.trace(u0, terr, keys)
+        trace_s = time.perf_counter() - t0
+        low = tr.lower()
         lower_s = time.perf_counter() - t0
+        hlo_chars = len(low.as_text())
         for opt in a.options:
             o = json.loads(opt)
             t0 = time.perf_counter()
             c = low.compile(compiler_options=o or None)
             comp_s = time.perf_counter() - t0
-            row = dict(mode=mode, options=o, lower_s=round(lower_s, 2), compile_s=round(comp_s, 2))
+            row = dict(mode=mode, options=o, trace_s=round(trace_s, 2), lower_s=round(lower_s, 2),
+                       compile_s=round(comp_s, 2), stablehlo_chars=hlo_chars, steps_traced=traced[0])
             if a.run:
                 best, out = best_call(c, (u0, terr, keys), 2)
                 row["env_steps_per_s"] = round(a.batch * n_phys / best, 1)
