@@ -25,7 +25,7 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 
 from hexjax.experiments.bench_grad import best_call, objective_program, physics_steps
-from hexjax.sim.model import mjx
+from hexjax.sim.model import mjx, swapped
 from hexjax.tune.config import BACKWARDS, load_tune_config
 from hexjax.tune.objective import Problem
 
@@ -40,11 +40,8 @@ def _counting(module, name):
         n[0] += 1
         return fn(*args, **kw)
 
-    setattr(module, name, counted)
-    try:
+    with swapped(module, name, counted):
         yield n
-    finally:
-        setattr(module, name, fn)
 
 
 def main():

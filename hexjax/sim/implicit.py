@@ -38,6 +38,8 @@ from jax.ad_checkpoint import checkpoint_name
 from mujoco.mjx._src import solver, support
 from mujoco.mjx._src.types import ConeType
 
+from hexjax.sim.model import swapped
+
 _MJX_SOLVE = solver.solve  # MJX's own solver, whatever is patched in later
 SOLUTION = "hexjax_constraint_solution"
 # jax.checkpoint policy for a control step under implicit differentiation: keep the solver's outputs, recompute
@@ -211,14 +213,8 @@ def implicit_solve(m, d):
     return d.tree_replace({"qacc": qacc, "qfrc_constraint": frc, "_impl.efc_force": efc})
 
 
-@contextlib.contextmanager
 def implicit_solver():
     """While open, MJX's forward dynamics calls `implicit_solve` in place of its constraint solver. Like
     `hexjax.sim.model.reversible_solver`, only tracing needs the context. Relies on MJX's `forward` module
     calling `solver.solve` through the module at each call (mujoco-mjx 3.17.0)."""
-    prev = solver.solve
-    solver.solve = implicit_solve
-    try:
-        yield
-    finally:
-        solver.solve = prev
+    return swapped(solver, "solve", implicit_solve)

@@ -326,12 +326,21 @@ def reversible_solver(iterations: int):
     if not (hasattr(solver, "_while_loop_scan") and getattr(solver, "jax", None) is not None):
         raise RuntimeError("reversible_solver: this mujoco-mjx's solver lacks _while_loop_scan; "
                            "use PhysicsConfig(iterations=1) for gradients instead")
-    prev = solver.jax
-    solver.jax = _JaxWithScanLax(iterations)
+    with swapped(solver, "jax", _JaxWithScanLax(iterations)):
+        yield
+
+
+@contextlib.contextmanager
+def swapped(module, name: str, value):
+    """While open, `module.name` is `value`; the previous one is put back on exit, also after an exception. This
+    is how hexjax traces MJX with one of its internals replaced (`reversible_solver`, `rotation_rule`,
+    `hexjax.sim.implicit.implicit_solver`): MJX looks these names up in their module at each call."""
+    prev = getattr(module, name)
+    setattr(module, name, value)
     try:
         yield
     finally:
-        solver.jax = prev
+        setattr(module, name, prev)
 
 
 def _rotation(p):
@@ -362,14 +371,8 @@ def _quat_to_mat_jvp(primals, tangents):
     return _MJX_QUAT_TO_MAT(q), _rotation(lambda i, j: qs[i] * ds[j] + ds[i] * qs[j])
 
 
-@contextlib.contextmanager
 def rotation_rule():
     """While open, MJX's kinematics (bodies', geoms' and sites' frames) call `quat_to_mat` above: the same values,
     a cheaper reverse mode. Only tracing needs the context. Relies on MJX's `smooth` and `support` modules calling
     `math.quat_to_mat` through the module (mujoco-mjx 3.17.0)."""
-    prev = mjx._src.math.quat_to_mat
-    mjx._src.math.quat_to_mat = quat_to_mat
-    try:
-        yield
-    finally:
-        mjx._src.math.quat_to_mat = prev
+    return swapped(mjx._src.math, "quat_to_mat", quat_to_mat)
