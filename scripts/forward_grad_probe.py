@@ -1,0 +1,163 @@
+"""Forward mode against reverse mode for the windowed gradient of a tuning objective (issue 19, 2026-11-27,
+seventh session).
+
+The tuned controllers have few params (5 for tactile_tripod). So the gradient can also be taken in forward mode:
+one JVP per param direction (`jax.jacfwd`, the directions side by side under `vmap`), carried along the rollout's
+scan with the primal. That needs no second copy of the control step (no `remat`, no stored residuals) and no
+reverse loop. The windows cut the state's tangent at their starts (`hexjax.sim.grad.cut_gradient` is a
+stop_gradient), which gives the same windowed gradient as reverse mode.
+
+MJX's constraint solve is made differentiable in forward mode as `RolloutConfig.solver_grad='implicit'` makes it in
+reverse mode, by the implicit function theorem at the solution (`hexjax.sim.implicit`). This script adds the
+forward-mode rule in place of the reverse one while it traces (`_attach_forward`, a custom JVP):
+
+    d a* = -H^{-1} (dg/dtheta) d theta,   g(a, theta) = M a - qfrc_smooth - qfrc_constraint(a, theta),
+
+with H = M + J^T diag(D active) J. The forces' tangents follow from MJX's constraint update, linearised at a*:
+dC/dtheta d theta from the linearisation and dC/da d a = -D active J d a on the rows (pyramidal cone).
+`RolloutConfig.grad_clip` bounds a cotangent and has no forward-mode counterpart, so the forward rows take the
+exact windowed gradient; the reverse row (`rev`) is the tuner's, with the config's `grad_clip`.
+
+Prints one JSON line per program (compile s, best call s, env-steps/s, the gradient) and the share of the
+forward's rate; --json writes them. Modes: forward (the objective alone), jvp (all param directions), jvp1 (one
+direction, the sum of all: the cost of a single tangent), rev (the tuner's reverse-mode value_and_grad).
+
+    python scripts/forward_grad_probe.py --batch 8 --modes forward,jvp1,jvp,rev --json out/fwd_probe.json
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.flatten_util import ravel_pytree
+from mujoco.mjx._src import solver, support
+
+from hexjax.experiments.bench_grad import best_call, objective_program, physics_steps
+from hexjax.sim import implicit
+from hexjax.sim.config import RolloutConfig
+from hexjax.sim.model import swapped
+from hexjax.sim.rollout import rollout_function
+from hexjax.tune.config import load_tune_config
+from hexjax.tune.objective import Problem, per_env_objective
+
+
+def _attach_forward(m, d, a_star, frc, efc):
+    """`hexjax.sim.implicit._attach` for forward mode: (a_star, frc, efc) unchanged in value, with tangents from
+    the float arrays of (m, d) by the implicit function theorem (module docstring)."""
+    leaves, treedef = jax.tree_util.tree_flatten((m, d))
+    traced = [i for i, x in enumerate(leaves) if isinstance(x, jax.Array)]
+    xs = [leaves[i] for i in traced]
+    fl = implicit._floats(xs)
+    ints = sorted(set(range(len(xs))) - set(fl))
+
+    def rebuild(ys):
+        return jax.tree_util.tree_unflatten(treedef, implicit._put(leaves, traced, ys))
+
+    @jax.custom_jvp
+    def attach(xf, xi, a, f, e):
+        return a, f, e
+
+    def rule(primals, tangents):
+        xf, xi, a, f, e = primals
+        ys = implicit._put(implicit._put(list(xs), fl, xf), ints, xi)
+        rebuild_f = lambda xf_: rebuild(implicit._put(ys, fl, xf_))  # noqa: E731
+        m_, d_ = rebuild_f(xf)
+
+        def update(a_, xf_):
+            mm, dd = rebuild_f(xf_)
+            c = solver.Context.create(mm, dd.replace(qacc=a_), grad=False)
+            return (c.Ma - dd.qfrc_smooth, c.qfrc_constraint, c.efc_force), c.active
+
+        _, lin, active = jax.linearize(update, a, xf, has_aux=True)
+        g1, q1, e1 = lin(jnp.zeros_like(a), tangents[0])  # d theta's part, at fixed a
+        j, dd = d_._impl.efc_J, d_._impl.efc_D
+        h = support.full_m(m_, d_) + (j.T * (dd * active)) @ j
+        da = -jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(0.5 * (h + h.T)), g1 - q1)
+        e2 = -(dd * active) * (j @ da)  # the constraint update's own derivative in a
+        return (a, f, e), (da, q1 + j.T @ e2, e1 + e2)
+
+    attach.defjvp(rule)
+    return attach([xs[k] for k in fl], [xs[k] for k in ints], a_star, frc, efc)
+
+
+def jvp_program(pb: Problem, one: bool):
+    """f(u, terrain, keys) -> ((mean J, per-env J), d mean J / du) by forward mode (module docstring); `one`: a single
+    tangent, the sum of all param directions, its derivative written into every entry."""
+    window = max(1, int(round(pb.cfg.window / pb.train_ctrl.dt)))
+    rc = RolloutConfig(grad_window=window, solver_grad="implicit")
+    model, fn = rollout_function(pb.robot, pb.train_ctrl, pb.duration, physics=pb.physics(), config=rc)
+    x0, unravel = ravel_pytree(pb.space.init(pb.params0))
+
+    def total(x, terr, keys):
+        j = per_env_objective(fn(model, pb.space.apply(unravel(x), pb.params0), terr, keys), pb.cfg.distance,
+                              pb.cfg.objective)
+        return jnp.sum(j), j
+
+    def f(u, terr, keys):
+        x = ravel_pytree(u)[0]
+        if one:
+            (_, j), (dt, _) = jax.jvp(lambda y: total(y, terr, keys), (x,), (jnp.ones_like(x),))
+            g = jnp.full_like(x, dt)
+        else:
+            g, j = jax.jacfwd(lambda y: total(y, terr, keys), has_aux=True)(x)
+        return (jnp.mean(j), j), unravel(g / j.shape[0])
+
+    return jax.jit(f)
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--tune", default="tactile_tripod")
+    ap.add_argument("--batch", type=int, default=8)
+    ap.add_argument("--repeats", type=int, default=1)
+    ap.add_argument("--modes", default="forward,jvp,rev")
+    ap.add_argument("--json", default="")
+    a = ap.parse_args()
+    modes = a.modes.split(",")
+    bad = [m for m in modes if m not in ("forward", "jvp", "jvp1", "rev")]
+    if bad or modes[0] != "forward":
+        raise SystemExit(f"--modes {a.modes!r}: forward first, then any of jvp, jvp1, rev")
+    pb = Problem.build(dataclasses.replace(load_tune_config(a.tune), solver_grad="implicit"))
+    u0 = pb.space.init(pb.params0)
+    terr, keys = pb.train_batch(0, a.batch)
+    n_phys = physics_steps(pb)
+    rows = []
+    for mode in modes:
+        if mode in ("forward", "rev"):
+            f = objective_program(pb, grad=mode == "rev")
+            t0 = time.perf_counter()
+            compiled = f.lower(u0, terr, keys).compile()
+        else:
+            f = jvp_program(pb, one=mode == "jvp1")
+            t0 = time.perf_counter()
+            with swapped(implicit, "_attach", _attach_forward):  # only tracing needs it
+                compiled = f.lower(u0, terr, keys).compile()
+        compile_s = time.perf_counter() - t0
+        run_s, out = best_call(compiled, (u0, terr, keys), a.repeats)
+        row = dict(mode=mode, batch=a.batch, compile_s=round(compile_s, 2), run_s=round(run_s, 4),
+                   env_steps_per_s=round(a.batch * n_phys / run_s, 1))
+        if mode != "forward":
+            row["grad"] = [float(v) for v in np.asarray(ravel_pytree(out[1])[0])]
+            row["rate_vs_forward"] = round(row["env_steps_per_s"] / rows[0]["env_steps_per_s"], 4)
+            row["compile_vs_forward"] = round(compile_s / rows[0]["compile_s"], 2)
+        rows.append(row)
+        print(json.dumps(row), flush=True)
+    grads = {r["mode"]: np.array(r["grad"]) for r in rows if r["mode"] in ("jvp", "rev")}
+    res = dict(tune=a.tune, backend=jax.default_backend(), device=str(jax.devices()[0].device_kind),
+               physics_steps_per_env=n_phys, jax=jax.__version__, date=time.strftime("%Y-%m-%d"), rows=rows)
+    if len(grads) == 2:
+        x, y = grads["jvp"], grads["rev"]
+        res["cosine_jvp_rev"] = float(x @ y / (np.linalg.norm(x) * np.linalg.norm(y)))
+        print(f"cosine(jvp, rev) {res['cosine_jvp_rev']:.4f}")
+    if a.json:
+        with open(a.json, "w") as fh:
+            json.dump(res, fh, indent=1)
+
+
+if __name__ == "__main__":
+    main()
