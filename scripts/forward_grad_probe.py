@@ -27,6 +27,7 @@ direction, the sum of all: the cost of a single tangent), rev (the tuner's rever
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
 import time
@@ -35,11 +36,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
-from mujoco.mjx._src import solver, support
+from mujoco.mjx._src import solver
 
-from hexjax.experiments.bench_grad import best_call, objective_program, physics_steps
+from hexjax.experiments.bench_grad import _time, objective_program, physics_steps
 from hexjax.sim import implicit
-from hexjax.sim.config import RolloutConfig
 from hexjax.sim.model import swapped
 from hexjax.sim.rollout import rollout_function
 from hexjax.tune.config import load_tune_config
@@ -75,10 +75,9 @@ def _attach_forward(m, d, a_star, frc, efc):
 
         _, lin, active = jax.linearize(update, a, xf, has_aux=True)
         g1, q1, e1 = lin(jnp.zeros_like(a), tangents[0])  # d theta's part, at fixed a
-        j, dd = d_._impl.efc_J, d_._impl.efc_D
-        h = support.full_m(m_, d_) + (j.T * (dd * active)) @ j
-        da = -jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(0.5 * (h + h.T)), g1 - q1)
-        e2 = -(dd * active) * (j @ da)  # the constraint update's own derivative in a
+        da = -implicit.newton_solve(m_, d_, active, g1 - q1)
+        j = d_._impl.efc_J
+        e2 = -(d_._impl.efc_D * active) * (j @ da)  # the constraint update's own derivative in a
         return (a, f, e), (da, q1 + j.T @ e2, e1 + e2)
 
     attach.defjvp(rule)
@@ -88,10 +87,10 @@ def _attach_forward(m, d, a_star, frc, efc):
 def jvp_program(pb: Problem, one: bool):
     """f(u, terrain, keys) -> ((mean J, per-env J), d mean J / du) by forward mode (module docstring); `one`: a single
     tangent, the sum of all param directions, its derivative written into every entry."""
-    window = max(1, int(round(pb.cfg.window / pb.train_ctrl.dt)))
-    rc = RolloutConfig(grad_window=window, solver_grad="implicit")
+    # the tuner's gradient rollout (its windows), without what only reverse mode uses: remat and the bound
+    rc = dataclasses.replace(pb._rollout_config(grad=True), remat=False, grad_clip=None)
     model, fn = rollout_function(pb.robot, pb.train_ctrl, pb.duration, physics=pb.physics(), config=rc)
-    x0, unravel = ravel_pytree(pb.space.init(pb.params0))
+    unravel = ravel_pytree(pb.space.init(pb.params0))[1]
 
     def total(x, terr, keys):
         j = per_env_objective(fn(model, pb.space.apply(unravel(x), pb.params0), terr, keys), pb.cfg.distance,
@@ -129,16 +128,11 @@ def main():
     rows = []
     for mode in modes:
         if mode in ("forward", "rev"):
-            f = objective_program(pb, grad=mode == "rev")
-            t0 = time.perf_counter()
-            compiled = f.lower(u0, terr, keys).compile()
-        else:
-            f = jvp_program(pb, one=mode == "jvp1")
-            t0 = time.perf_counter()
-            with swapped(implicit, "_attach", _attach_forward):  # only tracing needs it
-                compiled = f.lower(u0, terr, keys).compile()
-        compile_s = time.perf_counter() - t0
-        run_s, out = best_call(compiled, (u0, terr, keys), a.repeats)
+            f, rule = objective_program(pb, grad=mode == "rev"), contextlib.nullcontext()
+        else:  # the forward-mode rule in place of the reverse one while the program traces
+            f, rule = jvp_program(pb, one=mode == "jvp1"), swapped(implicit, "_attach", _attach_forward)
+        with rule:
+            compile_s, run_s, out = _time(f, (u0, terr, keys), a.repeats)
         row = dict(mode=mode, batch=a.batch, compile_s=round(compile_s, 2), run_s=round(run_s, 4),
                    env_steps_per_s=round(a.batch * n_phys / run_s, 1))
         if mode != "forward":

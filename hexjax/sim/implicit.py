@@ -73,12 +73,18 @@ def _cotangent(m, d, a_star, cts, rebuild, xf):
 
     (f1, _, efc), f_vjp, active = jax.vjp(f, a_star, xf, has_aux=True)
     a1, t1 = f_vjp((jnp.zeros_like(f1), cf, ce))
+    u = newton_solve(m, d, active, ca + a1)
+    _, t2 = f_vjp((-u, u, jnp.zeros_like(efc)))
+    return jax.tree_util.tree_map(jnp.add, t1, t2)
+
+
+def newton_solve(m, d, active, rhs):
+    """H^{-1} rhs with the Newton Hessian H = M + J^T diag(D active) J of the constraint solve at its solution
+    (module docstring), by a Cholesky factorisation of H (symmetrised against rounding)."""
     with jax.named_scope("hx.implicit_hessian"):
         j, dd = d._impl.efc_J, d._impl.efc_D
         h = support.full_m(m, d) + (j.T * (dd * active)) @ j
-        u = jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(0.5 * (h + h.T)), ca + a1)
-    _, t2 = f_vjp((-u, u, jnp.zeros_like(efc)))
-    return jax.tree_util.tree_map(jnp.add, t1, t2)
+        return jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(0.5 * (h + h.T)), rhs)
 
 
 def _floats(xs) -> list:
