@@ -16,7 +16,9 @@ forward-mode rule in place of the reverse one while it traces (`_attach_forward`
 with H = M + J^T diag(D active) J. The forces' tangents follow from MJX's constraint update, linearised at a*:
 dC/dtheta d theta from the linearisation and dC/da d a = -D active J d a on the rows (pyramidal cone).
 `RolloutConfig.grad_clip` bounds a cotangent and has no forward-mode counterpart, so the forward rows take the
-exact windowed gradient; the reverse row (`rev`) is the tuner's, with the config's `grad_clip`.
+exact windowed gradient; the reverse row (`rev`) is the tuner's, with the config's `grad_clip`. Every gradient
+program is traced under `hexjax.sim.model.integrator_rule` (the implicit integrator's linear solve differentiated
+as a solve, not through its Cholesky factor); `--no-integrator-rule` traces them without it, for the A/B.
 
 Prints one JSON line per program (compile s, best call s, env-steps/s, the gradient) and the share of the
 forward's rate; --json writes them. Modes: forward (the objective alone), jvp (all param directions), jvp1 (one
@@ -41,6 +43,7 @@ from mujoco.mjx._src import solver
 from hexjax.experiments.bench_grad import _time, objective_program, physics_steps
 from hexjax.sim import implicit
 from hexjax.sim.model import swapped
+from hexjax.sim import rollout
 from hexjax.sim.rollout import rollout_function
 from hexjax.tune.config import load_tune_config
 from hexjax.tune.objective import Problem, per_env_objective
@@ -84,12 +87,14 @@ def _attach_forward(m, d, a_star, frc, efc):
     return attach([xs[k] for k in fl], [xs[k] for k in ints], a_star, frc, efc)
 
 
-def jvp_program(pb: Problem, one: bool):
+def jvp_program(pb: Problem, one: bool, duration: float | None = None):
     """f(u, terrain, keys) -> ((mean J, per-env J), d mean J / du) by forward mode (module docstring); `one`: a single
-    tangent, the sum of all param directions, its derivative written into every entry."""
+    tangent, the sum of all param directions, its derivative written into every entry; `duration`: walk s instead of
+    the config's."""
     # the tuner's gradient rollout (its windows), without what only reverse mode uses: remat and the bound
     rc = dataclasses.replace(pb._rollout_config(grad=True), remat=False, grad_clip=None)
-    model, fn = rollout_function(pb.robot, pb.train_ctrl, pb.duration, physics=pb.physics(), config=rc)
+    walk = pb.duration if duration is None else duration
+    model, fn = rollout_function(pb.robot, pb.train_ctrl, walk, physics=pb.physics(), config=rc)
     unravel = ravel_pytree(pb.space.init(pb.params0))[1]
 
     def total(x, terr, keys):
@@ -115,6 +120,10 @@ def main():
     ap.add_argument("--batch", type=int, default=8)
     ap.add_argument("--repeats", type=int, default=1)
     ap.add_argument("--modes", default="forward,jvp,rev")
+    ap.add_argument("--duration", type=float, default=None, help="walk s instead of the config's")
+    ap.add_argument("--no-integrator-rule", action="store_true",
+                    help="trace every program with JAX's own derivative of the implicit integrator's Cholesky solve "
+                         "(hexjax.sim.model.integrator_rule replaced by a no-op): the rule's A/B")
     ap.add_argument("--json", default="")
     a = ap.parse_args()
     modes = a.modes.split(",")
@@ -124,14 +133,16 @@ def main():
     pb = Problem.build(dataclasses.replace(load_tune_config(a.tune), solver_grad="implicit"))
     u0 = pb.space.init(pb.params0)
     terr, keys = pb.train_batch(0, a.batch)
-    n_phys = physics_steps(pb)
+    n_phys = physics_steps(pb, a.duration)
     rows = []
     for mode in modes:
         if mode in ("forward", "rev"):
-            f, rule = objective_program(pb, grad=mode == "rev"), contextlib.nullcontext()
+            f, rule = objective_program(pb, grad=mode == "rev", duration=a.duration), contextlib.nullcontext()
         else:  # the forward-mode rule in place of the reverse one while the program traces
-            f, rule = jvp_program(pb, one=mode == "jvp1"), swapped(implicit, "_attach", _attach_forward)
-        with rule:
+            f = jvp_program(pb, one=mode == "jvp1", duration=a.duration)
+            rule = swapped(implicit, "_attach", _attach_forward)
+        with rule, (swapped(rollout, "integrator_rule", contextlib.nullcontext) if a.no_integrator_rule
+                    else contextlib.nullcontext()):
             compile_s, run_s, out = _time(f, (u0, terr, keys), a.repeats)
         row = dict(mode=mode, batch=a.batch, compile_s=round(compile_s, 2), run_s=round(run_s, 4),
                    env_steps_per_s=round(a.batch * n_phys / run_s, 1))
@@ -143,7 +154,9 @@ def main():
         print(json.dumps(row), flush=True)
     grads = {r["mode"]: np.array(r["grad"]) for r in rows if r["mode"] in ("jvp", "rev")}
     res = dict(tune=a.tune, backend=jax.default_backend(), device=str(jax.devices()[0].device_kind),
-               physics_steps_per_env=n_phys, jax=jax.__version__, date=time.strftime("%Y-%m-%d"), rows=rows)
+               physics_steps_per_env=n_phys, duration=a.duration,
+               integrator_rule=not a.no_integrator_rule, jax=jax.__version__, date=time.strftime("%Y-%m-%d"),
+               rows=rows)
     if len(grads) == 2:
         x, y = grads["jvp"], grads["rev"]
         res["cosine_jvp_rev"] = float(x @ y / (np.linalg.norm(x) * np.linalg.norm(y)))

@@ -10,11 +10,13 @@ Profiles one call of the smooth forward objective and one of its `jax.value_and_
   `fwd_velocity`, `fwd_actuation`, `fwd_acceleration`, `solve`, `euler`) and hexjax's (`hx.*`: the controller,
   the implicit backward's pieces, ...).
 
-Prints a table per program and writes JSON (`--json`). Shorten the walk with `--set distance=0.2` (compile
-time does not depend on it), or to a few control steps with `--duration 0.2 --settle 0.1`: the profiler
-drops events past a few million. Run it where the numbers matter: the GPU, through the device tool. There
-XLA groups kernels into command buffers (CUDA graphs), which the profile shows as one op each; set
-`XLA_FLAGS=--xla_gpu_enable_command_buffer=` to see every kernel (wall times then include launch gaps).
+`--only jvp` profiles the gradient in forward mode instead (`scripts/forward_grad_probe.py`'s program; each
+kernel's phase then reads `forward`, tangents included). Prints a table per program and writes JSON
+(`--json`). Shorten the walk with `--set distance=0.2` (compile time does not depend on it), or to a few control
+steps with `--duration 0.2 --settle 0.1`: the profiler drops events past a few million. Run it where the numbers
+matter: the GPU, through the device tool. There XLA groups kernels into command buffers (CUDA graphs), which the
+profile shows as one op each; set `XLA_FLAGS=--xla_gpu_enable_command_buffer=` to see every kernel (wall times
+then include launch gaps).
 
     python scripts/profile_grad.py --config tactile_tripod --batch 4096 --set distance=0.2 --json prof.json
 """
@@ -152,7 +154,8 @@ def profile(fn, args, label: str, top_n: int = 40, hlo_dir: str = None) -> dict:
                 phases={k: round(v * 1e-6, 4) for k, v in by_phase.most_common()},
                 stages=[dict(phase=k[0], stage=k[1], s=round(v * 1e-6, 4), share=round(v / max(total, 1e-9), 4))
                         for k, v in by.most_common()],
-                top_ops=[dict(s=round(u * 1e-6, 5), op=o, phase=p, stage=s, op_name=n) for u, o, p, s, n in top[:top_n]])
+                top_ops=[dict(s=round(u * 1e-6, 5), op=o, phase=p, stage=s, op_name=n)
+                         for u, o, p, s, n in top[:top_n]])
 
 
 def main():
@@ -162,7 +165,9 @@ def main():
     ap.add_argument("--solver-grad", default=None, help="override the config's solver_grad (unrolled|implicit)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="override a top-level config key (YAML value), e.g. distance=0.2")
-    ap.add_argument("--only", choices=("forward", "grad", "both"), default="both")
+    ap.add_argument("--only", choices=("forward", "grad", "both", "jvp", "forward+jvp"), default="both",
+                    help="programs: both = forward and value_and_grad; jvp = the gradient in forward mode "
+                         "(scripts/forward_grad_probe.py's program, its walk only: no --settle)")
     ap.add_argument("--duration", type=float, default=None,
                     help="s walked, instead of the config's (a short one keeps the trace small)")
     ap.add_argument("--settle", type=float, default=None, help="s of settling, instead of RolloutConfig's")
@@ -182,9 +187,17 @@ def main():
                device=str(jax.devices()[0].device_kind), jax=jax.__version__, date=time.strftime("%Y-%m-%d"),
                programs=[])
     for grad, label in ((False, "forward"), (True, "value_and_grad")):
-        if a.only in ("both", "grad" if grad else "forward"):
+        if a.only in (("both", "grad") if grad else ("both", "forward", "forward+jvp")):
             fn = objective_program(prob, grad, duration=a.duration, settle_time=a.settle)
             res["programs"].append(profile(fn, (u0, terr, keys), label, a.top, a.hlo_dir))
+    if a.only in ("jvp", "forward+jvp"):
+        from forward_grad_probe import _attach_forward, jvp_program  # the script beside this one
+
+        from hexjax.sim import implicit
+        from hexjax.sim.model import swapped
+        with swapped(implicit, "_attach", _attach_forward):  # traced when `profile` lowers it
+            res["programs"].append(profile(jvp_program(prob, one=False, duration=a.duration), (u0, terr, keys),
+                                           "jvp", a.top, a.hlo_dir))
     for p in res["programs"]:
         print(f"\n== {p['label']}: wall {p['wall_s']:.3f} s, kernels {p['kernel_s']:.3f} s over {p['kernels']} ops, "
               f"compile {p['compile_s']:.1f} s; phases " + ", ".join(f"{k} {v:.3f} s" for k, v in p["phases"].items()))

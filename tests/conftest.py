@@ -58,6 +58,7 @@ SHARED_FIXTURES = {
     "test_warp_backend_walks_like_mjx": "mjx_run",
     "test_converged_jacobian_matches_unrolled_and_central_differences": "standing",
     "test_forces_and_acceleration_jacobian_against_central_differences_and_unrolled": "standing",
+    "test_integrator_rule_keeps_mjx_values_and_derivative": "standing",
 }
 
 

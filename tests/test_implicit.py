@@ -248,3 +248,56 @@ def test_rotation_rule_keeps_mjx_values_and_derivative():
         with rotation_rule():
             raise RuntimeError("inside")
     assert mjx_math.quat_to_mat is mjx_q2m
+
+
+def test_integrator_rule_keeps_mjx_values_and_derivative(standing):
+    """`hexjax.sim.model.integrator_rule`, under which every rollout that reverse or forward mode goes through is
+    traced: MJX's implicitfast integration bit for bit on the standing robot, and its Jacobian (reverse and forward
+    mode) in the mass matrix, the constraint force and the velocity equal to the one through JAX's Cholesky
+    rule; `spd_solve` likewise on random SPD matrices; MJX's integrator back in place after the context."""
+    from mujoco.mjx._src import forward as mjx_forward
+
+    from hexjax.sim.model import integrator_rule, spd_solve
+
+    m, d = standing
+    mjx_implicit = mjx_forward.implicit
+    with integrator_rule():
+        ruled = mjx_forward.implicit
+    assert ruled is not mjx_implicit and mjx_forward.implicit is mjx_implicit
+
+    def integrate(fn):
+        def f(mass, frc, qvel):
+            out = fn(m, d.replace(qfrc_constraint=frc, qvel=qvel).tree_replace({"_impl.M": mass}))
+            return jnp.concatenate([out.qvel, out.qpos])
+        return f
+
+    args = (d._impl.M, d.qfrc_constraint, d.qvel)
+    assert float(jnp.abs(d.qfrc_constraint).max()) > 0.1, "expected contact forces"
+    np.testing.assert_array_equal(jax.jit(integrate(ruled))(*args), jax.jit(integrate(mjx_implicit))(*args))
+    # the mass matrix moves only symmetrically: compare the Jacobian on symmetric directions, (J + J^T) / 2 in M's
+    # two axes (single entries are a convention of each rule: the factor reads one triangle)
+    sym = lambda j: 0.5 * (j + jnp.swapaxes(j, -1, -2))  # noqa: E731
+    for jac in (jax.jacrev, jax.jacfwd):
+        got = jax.jit(jac(integrate(ruled), argnums=(0, 1, 2)))(*args)
+        want = jax.jit(jac(integrate(mjx_implicit), argnums=(0, 1, 2)))(*args)
+        for k, (g, w) in enumerate(zip(got, want)):
+            g, w = (sym(g), sym(w)) if k == 0 else (g, w)
+            assert float(jnp.abs(w).max()) > 1e-4
+            np.testing.assert_allclose(g, w, rtol=1e-4, atol=1e-6 * float(jnp.abs(w).max()))
+
+    k1, k2 = jax.random.split(jax.random.PRNGKey(5))
+    r = jax.random.normal(k1, (16, 6, 6))
+    a = r @ jnp.swapaxes(r, 1, 2) + 0.5 * jnp.eye(6)
+    b = jax.random.normal(k2, (16, 6))
+    cho = jax.vmap(lambda a, b: jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(a), b))
+    np.testing.assert_array_equal(jax.vmap(spd_solve)(a, b), cho(a, b))
+    on_sym = lambda f: (lambda s, b: f(0.5 * (s + jnp.swapaxes(s, 1, 2)), b))  # noqa: E731  symmetric directions
+    for jac in (jax.jacrev, jax.jacfwd):
+        got = jac(on_sym(jax.vmap(spd_solve)), argnums=(0, 1))(a, b)
+        want = jac(on_sym(cho), argnums=(0, 1))(a, b)
+        for g, w in zip(got, want):
+            np.testing.assert_allclose(g, w, rtol=1e-4, atol=1e-5 * float(jnp.abs(w).max()))
+    with pytest.raises(RuntimeError, match="inside"):
+        with integrator_rule():
+            raise RuntimeError("inside")
+    assert mjx_forward.implicit is mjx_implicit

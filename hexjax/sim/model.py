@@ -376,3 +376,41 @@ def rotation_rule():
     a cheaper reverse mode. Only tracing needs the context. Relies on MJX's `smooth` and `support` modules calling
     `math.quat_to_mat` through the module (mujoco-mjx 3.17.0)."""
     return swapped(mjx._src.math, "quat_to_mat", quat_to_mat)
+
+
+@jax.custom_jvp
+def spd_solve(a, b):
+    """a^{-1} b for a symmetric positive definite a, computed as MJX's implicit integrator computes it (a Cholesky
+    factor of a, then two triangular solves), with the derivative of the solution itself:
+    d(a^{-1} b) = a^{-1} (db - da a^{-1} b), one more solve with the same factor for each tangent. JAX's own rule
+    differentiates the factor instead (two triangular solves with a matrix right-hand side per tangent, O(n^3)),
+    which took 7 % of a forward-mode gradient's GPU time (docs/benchmarks.md, 2026-11-27 eighth session)."""
+    return jax.scipy.linalg.cho_solve((jax.scipy.linalg.cho_factor(a)[0], False), b)
+
+
+@spd_solve.defjvp
+def _spd_solve_jvp(primals, tangents):
+    (a, b), (da, db) = primals, tangents
+    factor = (jax.scipy.linalg.cho_factor(a)[0], False)
+    x = jax.scipy.linalg.cho_solve(factor, b)
+    return x, jax.scipy.linalg.cho_solve(factor, db - da @ x)
+
+
+def _implicit_integrator(m, d):
+    """MJX's `forward.implicit` (the implicit and implicitfast integrators, mujoco-mjx 3.17.0) with its linear solve
+    as `spd_solve`: the same values, a cheaper derivative."""
+    derivative, forward, support = mjx._src.derivative, mjx._src.forward, mjx._src.support
+    with jax.named_scope("implicit"):
+        qderiv = derivative.deriv_smooth_vel(m, d)
+        qacc = d.qacc
+        if qderiv is not None:
+            qm = support.full_m(m, d) if support.is_sparse(m) else d._impl.M
+            qacc = spd_solve(qm - m.opt.timestep * qderiv, d.qfrc_smooth + d.qfrc_constraint)
+        return forward._advance(m, d, d.act_dot, qacc)
+
+
+def integrator_rule():
+    """While open, MJX's step integrates with `_implicit_integrator` (same values, the derivative of its linear solve
+    by `spd_solve`). Only tracing needs the context. Relies on MJX's `forward.step` calling `implicit` through its
+    module (mujoco-mjx 3.17.0)."""
+    return swapped(mjx._src.forward, "implicit", _implicit_integrator)

@@ -23,7 +23,7 @@ from hexjax.sim.backends.mujoco_c import rollout_c
 from hexjax.sim.compiled import Compiled
 from hexjax.sim.config import PhysicsConfig, RolloutConfig, SensorConfig
 from hexjax.sim.implicit import REMAT_POLICY, implicit_solver
-from hexjax.sim.model import reversible_solver, rotation_rule, sim_model
+from hexjax.sim.model import integrator_rule, reversible_solver, rotation_rule, sim_model
 from hexjax.sim.step import Summary, control_steps, end_pose, make_control_step, make_env_start, settle_steps, substeps
 from hexjax.world.robot import RobotSpec
 from hexjax.world.terrain import Terrain
@@ -116,13 +116,14 @@ def _compiled(robot: RobotSpec, physics: PhysicsConfig, sensors: SensorConfig, c
 def solver_context(cfg: RolloutConfig, physics: PhysicsConfig):
     """The context under which MJX's constraint solve is traced as `cfg.solver_grad` says: its Newton iterations
     as a scan ('unrolled'), implicit differentiation ('implicit'), or MJX's own while loop ('none'). The first
-    two, which reverse mode goes through, also trace MJX's rotation matrices with a cheaper derivative
-    (`hexjax.sim.model.rotation_rule`; same values); forward-only rollouts ('none') are traced as MJX writes them."""
+    two, which reverse mode goes through, also trace MJX's rotation matrices and its implicit integrator's linear
+    solve with cheaper derivatives (`hexjax.sim.model.rotation_rule`, `integrator_rule`; same values);
+    forward-only rollouts ('none') are traced as MJX writes them."""
     if cfg.solver_grad == "none":
         yield
         return
-    with rotation_rule(), (reversible_solver(physics.iterations) if cfg.solver_grad == "unrolled"
-                           else implicit_solver()):
+    solve = reversible_solver(physics.iterations) if cfg.solver_grad == "unrolled" else implicit_solver()
+    with rotation_rule(), integrator_rule(), solve:
         yield
 
 
