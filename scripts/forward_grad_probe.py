@@ -41,9 +41,8 @@ from jax.flatten_util import ravel_pytree
 from mujoco.mjx._src import solver
 
 from hexjax.experiments.bench_grad import _time, objective_program, physics_steps
-from hexjax.sim import implicit
+from hexjax.sim import implicit, rollout
 from hexjax.sim.model import swapped
-from hexjax.sim import rollout
 from hexjax.sim.rollout import rollout_function
 from hexjax.tune.config import load_tune_config
 from hexjax.tune.objective import Problem, per_env_objective

@@ -37,6 +37,8 @@ import jax
 import numpy as np
 
 from hexjax.experiments.bench_grad import objective_program
+from hexjax.sim import implicit
+from hexjax.sim.model import swapped
 from hexjax.tune.config import load_tune_config
 from hexjax.tune.objective import Problem
 
@@ -192,9 +194,6 @@ def main():
             res["programs"].append(profile(fn, (u0, terr, keys), label, a.top, a.hlo_dir))
     if a.only in ("jvp", "forward+jvp"):
         from forward_grad_probe import _attach_forward, jvp_program  # the script beside this one
-
-        from hexjax.sim import implicit
-        from hexjax.sim.model import swapped
         with swapped(implicit, "_attach", _attach_forward):  # traced when `profile` lowers it
             res["programs"].append(profile(jvp_program(prob, one=False, duration=a.duration), (u0, terr, keys),
                                            "jvp", a.top, a.hlo_dir))
