@@ -51,14 +51,7 @@ from hexjax.tune.objective import Problem, per_env_objective
 def _attach_forward(m, d, a_star, frc, efc):
     """`hexjax.sim.implicit._attach` for forward mode: (a_star, frc, efc) unchanged in value, with tangents from
     the float arrays of (m, d) by the implicit function theorem (module docstring)."""
-    leaves, treedef = jax.tree_util.tree_flatten((m, d))
-    traced = [i for i, x in enumerate(leaves) if isinstance(x, jax.Array)]
-    xs = [leaves[i] for i in traced]
-    fl = implicit._floats(xs)
-    ints = sorted(set(range(len(xs))) - set(fl))
-
-    def rebuild(ys):
-        return jax.tree_util.tree_unflatten(treedef, implicit._put(leaves, traced, ys))
+    xs, fl, ints, rebuild = implicit.traced_leaves(m, d)
 
     @jax.custom_jvp
     def attach(xf, xi, a, f, e):

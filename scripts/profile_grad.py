@@ -188,15 +188,16 @@ def main():
     res = dict(config=a.config, batch=a.batch, overrides=overrides, solver_grad=cfg.solver_grad,
                device=str(jax.devices()[0].device_kind), jax=jax.__version__, date=time.strftime("%Y-%m-%d"),
                programs=[])
-    for grad, label in ((False, "forward"), (True, "value_and_grad")):
-        if a.only in (("both", "grad") if grad else ("both", "forward", "forward+jvp")):
-            fn = objective_program(prob, grad, duration=a.duration, settle_time=a.settle)
+    labels = {"both": ("forward", "value_and_grad"), "grad": ("value_and_grad",), "forward+jvp": ("forward", "jvp")}
+    for label in labels.get(a.only, (a.only,)):
+        if label == "jvp":
+            from forward_grad_probe import _attach_forward, jvp_program  # the script beside this one
+            with swapped(implicit, "_attach", _attach_forward):  # traced when `profile` lowers it
+                res["programs"].append(profile(jvp_program(prob, one=False, duration=a.duration), (u0, terr, keys),
+                                               label, a.top, a.hlo_dir))
+        else:
+            fn = objective_program(prob, label == "value_and_grad", duration=a.duration, settle_time=a.settle)
             res["programs"].append(profile(fn, (u0, terr, keys), label, a.top, a.hlo_dir))
-    if a.only in ("jvp", "forward+jvp"):
-        from forward_grad_probe import _attach_forward, jvp_program  # the script beside this one
-        with swapped(implicit, "_attach", _attach_forward):  # traced when `profile` lowers it
-            res["programs"].append(profile(jvp_program(prob, one=False, duration=a.duration), (u0, terr, keys),
-                                           "jvp", a.top, a.hlo_dir))
     for p in res["programs"]:
         print(f"\n== {p['label']}: wall {p['wall_s']:.3f} s, kernels {p['kernel_s']:.3f} s over {p['kernels']} ops, "
               f"compile {p['compile_s']:.1f} s; phases " + ", ".join(f"{k} {v:.3f} s" for k, v in p["phases"].items()))

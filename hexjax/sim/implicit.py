@@ -100,6 +100,21 @@ def _put(xs, idx, vals) -> list:
     return ys
 
 
+def traced_leaves(m, d):
+    """(xs, fl, ints, rebuild): the JAX-array leaves xs of (m, d) (numpy leaves are static), the indices of the
+    float ones and of the others in xs, and rebuild(xs') -> (m, d) with xs' in their place. What a custom rule
+    around the solve (`_attach`, or a forward-mode one) takes apart and puts back together."""
+    leaves, treedef = jax.tree_util.tree_flatten((m, d))
+    traced = [i for i, x in enumerate(leaves) if isinstance(x, jax.Array)]
+
+    def rebuild(xs):
+        return jax.tree_util.tree_unflatten(treedef, _put(leaves, traced, xs))
+
+    xs = [leaves[i] for i in traced]
+    fl = _floats(xs)
+    return xs, fl, sorted(set(range(len(xs))) - set(fl)), rebuild
+
+
 def _read_by_backward(m, d, a_star, rebuild, traced) -> list:
     """For each leaf index in `traced`, whether `_cotangent` reads it: only those are kept for the backward
     pass (the others, most of mjx.Data, would be stored for every physics step for nothing). Found by tracing
@@ -125,16 +140,8 @@ def _attach(m, d, a_star, frc, efc):
     computes nothing for the derivative (the backward pass builds the Hessian and the constraint update from
     the control step's recomputed inputs), and it keeps for the backward pass only the arrays whose values
     `_cotangent` reads (the mass matrix and the constraint rows); the others get their cotangents all the same."""
-    leaves, treedef = jax.tree_util.tree_flatten((m, d))
-    traced = [i for i, x in enumerate(leaves) if isinstance(x, jax.Array)]
-
-    def rebuild(xs):
-        return jax.tree_util.tree_unflatten(treedef, _put(leaves, traced, xs))
-
-    xs = [leaves[i] for i in traced]
+    xs, fl, ints, rebuild = traced_leaves(m, d)
     read = [k for k, u in enumerate(_read_by_backward(m, d, a_star, rebuild, xs)) if u]
-    fl = _floats(xs)
-    ints = sorted(set(range(len(xs))) - set(fl))
 
     @jax.custom_vjp
     def attach(xf, xi, a, f, e):

@@ -385,13 +385,13 @@ def spd_solve(a, b):
     d(a^{-1} b) = a^{-1} (db - da a^{-1} b), one more solve with the same factor for each tangent. JAX's own rule
     differentiates the factor instead (two triangular solves with a matrix right-hand side per tangent, O(n^3)),
     which took 7 % of a forward-mode gradient's GPU time (docs/benchmarks.md, 2026-11-27 eighth session)."""
-    return jax.scipy.linalg.cho_solve((jax.scipy.linalg.cho_factor(a)[0], False), b)
+    return jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(a), b)
 
 
 @spd_solve.defjvp
 def _spd_solve_jvp(primals, tangents):
     (a, b), (da, db) = primals, tangents
-    factor = (jax.scipy.linalg.cho_factor(a)[0], False)
+    factor = jax.scipy.linalg.cho_factor(a)
     x = jax.scipy.linalg.cho_solve(factor, b)
     return x, jax.scipy.linalg.cho_solve(factor, db - da @ x)
 
