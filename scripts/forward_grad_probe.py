@@ -22,7 +22,12 @@ as a solve, not through its Cholesky factor); `--no-integrator-rule` traces them
 
 Prints one JSON line per program (compile s, best call s, env-steps/s, the gradient) and the share of the
 forward's rate; --json writes them. Modes: forward (the objective alone), jvp (all param directions), jvp1 (one
-direction, the sum of all: the cost of a single tangent), rev (the tuner's reverse-mode value_and_grad).
+direction, the sum of all: the cost of a single tangent), rev (the tuner's reverse-mode value_and_grad), and two
+variants of jvp's rule (2026-11-27, tenth session): jvpk takes the Newton Hessian's Cholesky factor from the
+solver's last iteration instead of rebuilding it (`_solve_keep`, a copy of MJX's solve that returns it), and
+jvpm also writes the constraint update's derivative in theta out for the pyramidal cone, from the solver's last
+state, instead of linearising MJX's update a second time (`_attach_kept`). Both give jvp's gradient to rounding
+(docs/tuning.md, "Both taken from the solver, measured").
 
     python scripts/forward_grad_probe.py --batch 8 --modes forward,jvp1,jvp,rev --json out/fwd_probe.json
 """
@@ -31,6 +36,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
+import functools
 import json
 import time
 
@@ -38,7 +44,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
-from mujoco.mjx._src import solver
+from mujoco.mjx._src import math as mjx_math
+from mujoco.mjx._src import solver, support
+from mujoco.mjx._src.types import DisableBit
 
 from hexjax.experiments.bench_grad import _time, objective_program, physics_steps
 from hexjax.sim import implicit, rollout
@@ -77,6 +85,89 @@ def _attach_forward(m, d, a_star, frc, efc):
 
     attach.defjvp(rule)
     return attach([xs[k] for k in fl], [xs[k] for k in ints], a_star, frc, efc)
+
+
+_KEPT = []  # the last solve's (Cholesky factor of H, Jaref, active), from `_solve_keep` to the rule that follows it
+
+
+def _gradient_keep(m, d, ctx):
+    """MJX's `solver._update_gradient` for the Newton solver and the pyramidal cone, op for op, that also returns
+    the Cholesky factor of H (upper triangle, as `cho_factor` gives it)."""
+    grad = ctx.Ma - d.qfrc_smooth - ctx.qfrc_constraint
+    h = support.full_m(m, d) + (d._impl.efc_J.T * d._impl.efc_D * ctx.active) @ d._impl.efc_J
+    c = jax.scipy.linalg.cho_factor((h + h.T) * 0.5)
+    return ctx.replace(grad=grad, Mgrad=jax.scipy.linalg.cho_solve(c, grad)), c[0]
+
+
+def _solve_keep(m, d):
+    """MJX's `solver.solve` (mujoco-mjx 3.17.0; Newton, pyramidal cone), the same values, with the factor of its
+    last `_update_gradient` (at the solution) and that iteration's Jaref and active set kept in `_KEPT`."""
+    def cond(carry):
+        ctx = carry[0]
+        done = ctx.solver_niter >= m.opt.iterations
+        done |= solver._rescale(m, d, ctx.prev_cost - ctx.cost) < m.opt.tolerance
+        done |= solver._rescale(m, d, mjx_math.norm(ctx.grad)) < m.opt.tolerance
+        return ~done
+
+    def body(carry):
+        ctx = solver._update_constraint(m, d, solver._linesearch(m, d, carry[0]))
+        ctx, chol = _gradient_keep(m, d, ctx)
+        return ctx.replace(search=-ctx.Mgrad, solver_niter=ctx.solver_niter + 1), chol
+
+    qacc = d.qacc_smooth
+    if not m.opt.disableflags & DisableBit.WARMSTART:
+        warm = solver.Context.create(m, d.replace(qacc=d.qacc_warmstart), grad=False)
+        smth = solver.Context.create(m, d.replace(qacc=d.qacc_smooth), grad=False)
+        qacc = jnp.where(warm.cost < smth.cost, d.qacc_warmstart, d.qacc_smooth)
+    d = d.replace(qacc=qacc)
+    ctx, chol = _gradient_keep(m, d, solver.Context.create(m, d, grad=False))
+    carry = (ctx.replace(search=-ctx.Mgrad), chol)
+    ctx, chol = body(carry) if m.opt.iterations == 1 else jax.lax.while_loop(cond, body, carry)
+    _KEPT.append((chol, ctx.Jaref, ctx.active))
+    return d.tree_replace({"qfrc_constraint": ctx.qfrc_constraint, "qacc": ctx.qacc,
+                           "_impl.efc_force": ctx.efc_force})
+
+
+def _attach_kept(m, d, a_star, frc, efc, written: bool):
+    """`_attach_forward` with the solve's kept factor in place of a rebuilt one; with `written`, the constraint
+    update's tangent in theta at fixed a also comes from the solver's last state rather than a second
+    linearisation. For the pyramidal cone with no friction loss, where MJX's update is
+    f = -D (J a - aref) on the active rows and C_qfrc = J^T f:
+        d f = -(dD Jaref + D (dJ a - daref)) active,   d C_qfrc = dJ^T f + J^T d f,   d(M a) = dM a."""
+    if written and (m._impl.dof_hasfrictionloss.any() or m._impl.tendon_hasfrictionloss.any()):
+        raise ValueError("jvpm writes the derivative for models without friction loss only")
+    chol, jaref, active = (jax.lax.stop_gradient(x) for x in _KEPT.pop())
+    xs, fl, ints, rebuild = implicit.traced_leaves(m, d)
+
+    @jax.custom_jvp
+    def attach(xf, xi, a, f, e, chol_, jr, act):
+        return a, f, e
+
+    def rule(primals, tangents):
+        xf, xi, a, f, e, chol_, jr, act = primals
+        ys = implicit._put(list(xs), ints, xi)
+        rebuild_f = lambda xf_: rebuild(implicit._put(ys, fl, xf_))  # noqa: E731
+        m_, d_ = rebuild_f(xf)
+        j, dd = d_._impl.efc_J, d_._impl.efc_D
+        if written:
+            _, td = rebuild_f(tangents[0])
+            e1 = -(td._impl.efc_D * jr + dd * (td._impl.efc_J @ a - td._impl.efc_aref)) * act
+            q1 = td._impl.efc_J.T @ e + j.T @ e1
+            g1 = support.mul_m(m_, d_.tree_replace({"_impl.M": td._impl.M}), a) - td.qfrc_smooth
+        else:  # as `_attach_forward` does, the active set included
+            def update(a_, xf_):
+                mm, d2 = rebuild_f(xf_)
+                c = solver.Context.create(mm, d2.replace(qacc=a_), grad=False)
+                return (c.Ma - d2.qfrc_smooth, c.qfrc_constraint, c.efc_force), c.active
+
+            _, lin, act = jax.linearize(update, a, xf, has_aux=True)
+            g1, q1, e1 = lin(jnp.zeros_like(a), tangents[0])
+        da = -jax.scipy.linalg.cho_solve((chol_, False), g1 - q1)
+        e2 = -(dd * act) * (j @ da)
+        return (a, f, e), (da, q1 + j.T @ e2, e1 + e2)
+
+    attach.defjvp(rule)
+    return attach([xs[k] for k in fl], [xs[k] for k in ints], a_star, frc, efc, chol, jaref, active)
 
 
 def jvp_program(pb: Problem, one: bool, duration: float | None = None):
@@ -119,9 +210,9 @@ def main():
     ap.add_argument("--json", default="")
     a = ap.parse_args()
     modes = a.modes.split(",")
-    bad = [m for m in modes if m not in ("forward", "jvp", "jvp1", "rev")]
+    bad = [m for m in modes if m not in ("forward", "jvp", "jvp1", "jvpk", "jvpm", "rev")]
     if bad or modes[0] != "forward":
-        raise SystemExit(f"--modes {a.modes!r}: forward first, then any of jvp, jvp1, rev")
+        raise SystemExit(f"--modes {a.modes!r}: forward first, then any of jvp, jvp1, jvpk, jvpm, rev")
     pb = Problem.build(dataclasses.replace(load_tune_config(a.tune), solver_grad="implicit"))
     u0 = pb.space.init(pb.params0)
     terr, keys = pb.train_batch(0, a.batch)
@@ -130,9 +221,14 @@ def main():
     for mode in modes:
         if mode in ("forward", "rev"):
             f, rule = objective_program(pb, grad=mode == "rev", duration=a.duration), contextlib.nullcontext()
-        else:  # the forward-mode rule in place of the reverse one while the program traces
+        elif mode in ("jvp", "jvp1"):  # the forward-mode rule in place of the reverse one while the program traces
             f = jvp_program(pb, one=mode == "jvp1", duration=a.duration)
             rule = swapped(implicit, "_attach", _attach_forward)
+        else:  # the same with the solve that keeps its factor (and last state)
+            f = jvp_program(pb, one=False, duration=a.duration)
+            rule = contextlib.ExitStack()
+            rule.enter_context(swapped(implicit, "_MJX_SOLVE", _solve_keep))
+            rule.enter_context(swapped(implicit, "_attach", functools.partial(_attach_kept, written=mode == "jvpm")))
         with rule, (swapped(rollout, "integrator_rule", contextlib.nullcontext) if a.no_integrator_rule
                     else contextlib.nullcontext()):
             compile_s, run_s, out = _time(f, (u0, terr, keys), a.repeats)
@@ -144,15 +240,20 @@ def main():
             row["compile_vs_forward"] = round(compile_s / rows[0]["compile_s"], 2)
         rows.append(row)
         print(json.dumps(row), flush=True)
-    grads = {r["mode"]: np.array(r["grad"]) for r in rows if r["mode"] in ("jvp", "rev")}
+    grads = {r["mode"]: np.array(r["grad"]) for r in rows if r["mode"] in ("jvp", "jvpk", "jvpm", "rev")}
     res = dict(tune=a.tune, backend=jax.default_backend(), device=str(jax.devices()[0].device_kind),
                physics_steps_per_env=n_phys, duration=a.duration,
                integrator_rule=not a.no_integrator_rule, jax=jax.__version__, date=time.strftime("%Y-%m-%d"),
                rows=rows)
-    if len(grads) == 2:
+    if "jvp" in grads and "rev" in grads:
         x, y = grads["jvp"], grads["rev"]
         res["cosine_jvp_rev"] = float(x @ y / (np.linalg.norm(x) * np.linalg.norm(y)))
         print(f"cosine(jvp, rev) {res['cosine_jvp_rev']:.4f}")
+    for k in ("jvpk", "jvpm"):  # the rule's variants give jvp's gradient, to rounding
+        if "jvp" in grads and k in grads:
+            x, y = grads["jvp"], grads[k]
+            res[f"max_rel_diff_{k}_jvp"] = float(np.max(np.abs(y - x)) / np.max(np.abs(x)))
+            print(f"{k} against jvp: largest difference {res[f'max_rel_diff_{k}_jvp']:.2e} of the largest entry")
     if a.json:
         with open(a.json, "w") as fh:
             json.dump(res, fh, indent=1)
