@@ -25,6 +25,8 @@ from __future__ import annotations
 
 import argparse
 import collections
+import contextlib
+import functools
 import glob
 import gzip
 import json
@@ -167,9 +169,11 @@ def main():
     ap.add_argument("--solver-grad", default=None, help="override the config's solver_grad (unrolled|implicit)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="override a top-level config key (YAML value), e.g. distance=0.2")
-    ap.add_argument("--only", choices=("forward", "grad", "both", "jvp", "forward+jvp"), default="both",
+    ap.add_argument("--only", choices=("forward", "grad", "both", "jvp", "forward+jvp", "jvpm", "forward+jvpm"),
+                    default="both",
                     help="programs: both = forward and value_and_grad; jvp = the gradient in forward mode "
-                         "(scripts/forward_grad_probe.py's program, its walk only: no --settle)")
+                         "(scripts/forward_grad_probe.py's program, its walk only: no --settle); jvpm = the same "
+                         "with the probe's jvpm rule (the solver's factor, the update's derivative written out)")
     ap.add_argument("--duration", type=float, default=None,
                     help="s walked, instead of the config's (a short one keeps the trace small)")
     ap.add_argument("--settle", type=float, default=None, help="s of settling, instead of RolloutConfig's")
@@ -188,12 +192,18 @@ def main():
     res = dict(config=a.config, batch=a.batch, overrides=overrides, solver_grad=cfg.solver_grad,
                device=str(jax.devices()[0].device_kind), jax=jax.__version__, date=time.strftime("%Y-%m-%d"),
                programs=[])
-    labels = {"both": ("forward", "value_and_grad"), "grad": ("value_and_grad",), "forward+jvp": ("forward", "jvp")}
+    labels = {"both": ("forward", "value_and_grad"), "grad": ("value_and_grad",), "forward+jvp": ("forward", "jvp"),
+              "forward+jvpm": ("forward", "jvpm")}
     for label in labels.get(a.only, (a.only,)):
-        if label == "jvp":
-            from forward_grad_probe import _attach_forward, jvp_program  # the script beside this one
-            with swapped(implicit, "_attach", _attach_forward):  # traced when `profile` lowers it
-                res["programs"].append(profile(jvp_program(prob, one=False, duration=a.duration), (u0, terr, keys),
+        if label in ("jvp", "jvpm"):
+            import forward_grad_probe as fgp  # the script beside this one
+            with contextlib.ExitStack() as rules:  # traced when `profile` lowers it
+                if label == "jvp":
+                    rules.enter_context(swapped(implicit, "_attach", fgp._attach_forward))
+                else:
+                    rules.enter_context(swapped(implicit, "_MJX_SOLVE", fgp._solve_keep))
+                    rules.enter_context(swapped(implicit, "_attach", functools.partial(fgp._attach_kept, written=True)))
+                res["programs"].append(profile(fgp.jvp_program(prob, one=False, duration=a.duration), (u0, terr, keys),
                                                label, a.top, a.hlo_dir))
         else:
             fn = objective_program(prob, label == "value_and_grad", duration=a.duration, settle_time=a.settle)
