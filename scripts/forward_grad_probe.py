@@ -26,7 +26,7 @@ direction, the sum of all: the cost of a single tangent), rev (the tuner's rever
 variants of jvp's rule (2026-11-27, tenth session): jvpk takes the Newton Hessian's Cholesky factor from the
 solver's last iteration instead of rebuilding it (`_solve_keep`, a copy of MJX's solve that returns it), and
 jvpm also writes the constraint update's derivative in theta out for the pyramidal cone, from the solver's last
-state, instead of linearising MJX's update a second time (`_attach_kept`). Both give jvp's gradient to rounding
+state, instead of linearising MJX's update a second time (`_attach_forward`'s options). Both give jvp's gradient to rounding
 (docs/tuning.md, "Both taken from the solver, measured").
 
     python scripts/forward_grad_probe.py --batch 8 --modes forward,jvp1,jvp,rev --json out/fwd_probe.json
@@ -54,37 +54,6 @@ from hexjax.sim.model import swapped
 from hexjax.sim.rollout import rollout_function
 from hexjax.tune.config import load_tune_config
 from hexjax.tune.objective import Problem, per_env_objective
-
-
-def _attach_forward(m, d, a_star, frc, efc):
-    """`hexjax.sim.implicit._attach` for forward mode: (a_star, frc, efc) unchanged in value, with tangents from
-    the float arrays of (m, d) by the implicit function theorem (module docstring)."""
-    xs, fl, ints, rebuild = implicit.traced_leaves(m, d)
-
-    @jax.custom_jvp
-    def attach(xf, xi, a, f, e):
-        return a, f, e
-
-    def rule(primals, tangents):
-        xf, xi, a, f, e = primals
-        ys = implicit._put(implicit._put(list(xs), fl, xf), ints, xi)
-        rebuild_f = lambda xf_: rebuild(implicit._put(ys, fl, xf_))  # noqa: E731
-        m_, d_ = rebuild_f(xf)
-
-        def update(a_, xf_):
-            mm, dd = rebuild_f(xf_)
-            c = solver.Context.create(mm, dd.replace(qacc=a_), grad=False)
-            return (c.Ma - dd.qfrc_smooth, c.qfrc_constraint, c.efc_force), c.active
-
-        _, lin, active = jax.linearize(update, a, xf, has_aux=True)
-        g1, q1, e1 = lin(jnp.zeros_like(a), tangents[0])  # d theta's part, at fixed a
-        da = -implicit.newton_solve(m_, d_, active, g1 - q1)
-        j = d_._impl.efc_J
-        e2 = -(d_._impl.efc_D * active) * (j @ da)  # the constraint update's own derivative in a
-        return (a, f, e), (da, q1 + j.T @ e2, e1 + e2)
-
-    attach.defjvp(rule)
-    return attach([xs[k] for k in fl], [xs[k] for k in ints], a_star, frc, efc)
 
 
 _KEPT = []  # the last solve's (Cholesky factor of H, Jaref, active), from `_solve_keep` to the rule that follows it
@@ -128,46 +97,67 @@ def _solve_keep(m, d):
                            "_impl.efc_force": ctx.efc_force})
 
 
-def _attach_kept(m, d, a_star, frc, efc, written: bool):
-    """`_attach_forward` with the solve's kept factor in place of a rebuilt one; with `written`, the constraint
-    update's tangent in theta at fixed a also comes from the solver's last state rather than a second
-    linearisation. For the pyramidal cone with no friction loss, where MJX's update is
-    f = -D (J a - aref) on the active rows and C_qfrc = J^T f:
+def _attach_forward(m, d, a_star, frc, efc, kept: bool = False, written: bool = False):
+    """`hexjax.sim.implicit._attach` for forward mode: (a_star, frc, efc) unchanged in value, with tangents from
+    the float arrays of (m, d) by the implicit function theorem (module docstring).
+
+    `kept` (modes jvpk, jvpm): solve with the Cholesky factor of H that `_solve_keep` kept from the solver's last
+    iteration, in place of one rebuilt at the solution. `written` (jvpm): the constraint update's tangent in theta
+    at fixed a also comes from the solver's last state (Jaref, active set) rather than a second linearisation. For
+    the pyramidal cone with no friction loss, where MJX's update is f = -D (J a - aref) on the active rows and
+    C_qfrc = J^T f:
         d f = -(dD Jaref + D (dJ a - daref)) active,   d C_qfrc = dJ^T f + J^T d f,   d(M a) = dM a."""
     if written and (m._impl.dof_hasfrictionloss.any() or m._impl.tendon_hasfrictionloss.any()):
         raise ValueError("jvpm writes the derivative for models without friction loss only")
-    chol, jaref, active = (jax.lax.stop_gradient(x) for x in _KEPT.pop())
+    last = tuple(jax.lax.stop_gradient(x) for x in _KEPT.pop()) if kept else ()  # (factor, Jaref, active)
     xs, fl, ints, rebuild = implicit.traced_leaves(m, d)
 
     @jax.custom_jvp
-    def attach(xf, xi, a, f, e, chol_, jr, act):
+    def attach(xf, xi, a, f, e, last_):
         return a, f, e
 
     def rule(primals, tangents):
-        xf, xi, a, f, e, chol_, jr, act = primals
-        ys = implicit._put(list(xs), ints, xi)
+        xf, xi, a, f, e, last_ = primals
+        ys = implicit._put(implicit._put(list(xs), fl, xf), ints, xi)
         rebuild_f = lambda xf_: rebuild(implicit._put(ys, fl, xf_))  # noqa: E731
         m_, d_ = rebuild_f(xf)
         j, dd = d_._impl.efc_J, d_._impl.efc_D
         if written:
+            _, jaref, active = last_
             _, td = rebuild_f(tangents[0])
-            e1 = -(td._impl.efc_D * jr + dd * (td._impl.efc_J @ a - td._impl.efc_aref)) * act
+            e1 = -(td._impl.efc_D * jaref + dd * (td._impl.efc_J @ a - td._impl.efc_aref)) * active
             q1 = td._impl.efc_J.T @ e + j.T @ e1
             g1 = support.mul_m(m_, d_.tree_replace({"_impl.M": td._impl.M}), a) - td.qfrc_smooth
-        else:  # as `_attach_forward` does, the active set included
+        else:
             def update(a_, xf_):
                 mm, d2 = rebuild_f(xf_)
                 c = solver.Context.create(mm, d2.replace(qacc=a_), grad=False)
                 return (c.Ma - d2.qfrc_smooth, c.qfrc_constraint, c.efc_force), c.active
 
-            _, lin, act = jax.linearize(update, a, xf, has_aux=True)
-            g1, q1, e1 = lin(jnp.zeros_like(a), tangents[0])
-        da = -jax.scipy.linalg.cho_solve((chol_, False), g1 - q1)
-        e2 = -(dd * act) * (j @ da)
+            _, lin, active = jax.linearize(update, a, xf, has_aux=True)
+            g1, q1, e1 = lin(jnp.zeros_like(a), tangents[0])  # d theta's part, at fixed a
+        if kept:
+            da = -jax.scipy.linalg.cho_solve((last_[0], False), g1 - q1)
+        else:
+            da = -implicit.newton_solve(m_, d_, active, g1 - q1)
+        e2 = -(dd * active) * (j @ da)  # the constraint update's own derivative in a
         return (a, f, e), (da, q1 + j.T @ e2, e1 + e2)
 
     attach.defjvp(rule)
-    return attach([xs[k] for k in fl], [xs[k] for k in ints], a_star, frc, efc, chol, jaref, active)
+    return attach([xs[k] for k in fl], [xs[k] for k in ints], a_star, frc, efc, last)
+
+
+@contextlib.contextmanager
+def forward_rule(mode: str):
+    """While open, a program traced takes the forward-mode rule of `mode` (jvp, jvp1, jvpk, jvpm) in place of the
+    reverse one (`hexjax.sim.implicit._attach`); jvpk and jvpm also run `_solve_keep` as the solver."""
+    kept = mode in ("jvpk", "jvpm")
+    with contextlib.ExitStack() as stack:
+        if kept:
+            stack.enter_context(swapped(implicit, "_MJX_SOLVE", _solve_keep))
+        stack.enter_context(swapped(implicit, "_attach", functools.partial(
+            _attach_forward, kept=kept, written=mode == "jvpm")))
+        yield
 
 
 def jvp_program(pb: Problem, one: bool, duration: float | None = None):
@@ -221,14 +211,8 @@ def main():
     for mode in modes:
         if mode in ("forward", "rev"):
             f, rule = objective_program(pb, grad=mode == "rev", duration=a.duration), contextlib.nullcontext()
-        elif mode in ("jvp", "jvp1"):  # the forward-mode rule in place of the reverse one while the program traces
-            f = jvp_program(pb, one=mode == "jvp1", duration=a.duration)
-            rule = swapped(implicit, "_attach", _attach_forward)
-        else:  # the same with the solve that keeps its factor (and last state)
-            f = jvp_program(pb, one=False, duration=a.duration)
-            rule = contextlib.ExitStack()
-            rule.enter_context(swapped(implicit, "_MJX_SOLVE", _solve_keep))
-            rule.enter_context(swapped(implicit, "_attach", functools.partial(_attach_kept, written=mode == "jvpm")))
+        else:  # the forward-mode rule in place of the reverse one while the program traces
+            f, rule = jvp_program(pb, one=mode == "jvp1", duration=a.duration), forward_rule(mode)
         with rule, (swapped(rollout, "integrator_rule", contextlib.nullcontext) if a.no_integrator_rule
                     else contextlib.nullcontext()):
             compile_s, run_s, out = _time(f, (u0, terr, keys), a.repeats)

@@ -25,8 +25,6 @@ from __future__ import annotations
 
 import argparse
 import collections
-import contextlib
-import functools
 import glob
 import gzip
 import json
@@ -39,8 +37,6 @@ import jax
 import numpy as np
 
 from hexjax.experiments.bench_grad import objective_program
-from hexjax.sim import implicit
-from hexjax.sim.model import swapped
 from hexjax.tune.config import load_tune_config
 from hexjax.tune.objective import Problem
 
@@ -197,12 +193,7 @@ def main():
     for label in labels.get(a.only, (a.only,)):
         if label in ("jvp", "jvpm"):
             import forward_grad_probe as fgp  # the script beside this one
-            with contextlib.ExitStack() as rules:  # traced when `profile` lowers it
-                if label == "jvp":
-                    rules.enter_context(swapped(implicit, "_attach", fgp._attach_forward))
-                else:
-                    rules.enter_context(swapped(implicit, "_MJX_SOLVE", fgp._solve_keep))
-                    rules.enter_context(swapped(implicit, "_attach", functools.partial(fgp._attach_kept, written=True)))
+            with fgp.forward_rule(label):  # traced when `profile` lowers it
                 res["programs"].append(profile(fgp.jvp_program(prob, one=False, duration=a.duration), (u0, terr, keys),
                                                label, a.top, a.hlo_dir))
         else:
