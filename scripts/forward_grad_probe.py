@@ -45,8 +45,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 from mujoco.mjx._src import math as mjx_math
-from mujoco.mjx._src import solver, support
-from mujoco.mjx._src.types import DisableBit
+from mujoco.mjx._src import constraint, solver, support
+from mujoco.mjx._src.types import ConstraintType, DisableBit, JointType
 
 from hexjax.experiments.bench_grad import _time, objective_program, physics_steps
 from hexjax.sim import implicit, rollout
@@ -97,7 +97,90 @@ def _solve_keep(m, d):
                            "_impl.efc_force": ctx.efc_force})
 
 
-def _attach_forward(m, d, a_star, frc, efc, kept: bool = False, written: bool = False):
+def _pyramidal_no_tangent(m, d, condim):
+    """MJX's pyramidal contact rows with the Jacobian's tangent cut (mode jvpf): its value is MJX's, and
+    `_attach_forward` takes the products of its tangent from `_rows_times` and `_rows_t_times` instead, so
+    the tangent of the (rows x nv) matrix is never formed."""
+    efc = _MJX_PYRAMIDAL(m, d, condim)
+    return None if efc is None else efc.replace(J=jax.lax.stop_gradient(efc.J))
+
+
+_MJX_PYRAMIDAL = constraint._efc_contact_pyramidal
+
+
+def _ancestors(m) -> np.ndarray:
+    """(nbody, nv): 1 where the dof moves body b (its body is b or an ancestor of b). `support.jac`'s mask for
+    every body at once, made static."""
+    parent, nb = np.asarray(m.body_parentid), m.nbody
+    anc = np.zeros((nb, nb), np.float32)
+    for b in range(nb):
+        a = b
+        while True:
+            anc[b, a] = 1.0
+            if a == 0:
+                break
+            a = parent[a]
+    return anc[:, np.asarray(m.dof_bodyid)]
+
+
+def _contact_parts(d):
+    """The float inputs of MJX's pyramidal contact rows (`constraint._efc_contact_pyramidal`), those that carry
+    tangents: cdof, subtree_com, and the contacts' points, frames and friction."""
+    c = d._impl.contact
+    return d.cdof, d.subtree_com, c.pos, c.frame, c.friction
+
+
+def _rows_times(m, parts, bodies, active, x):
+    """J_c x for the 4 pyramidal rows of every contact (condim 3), without forming J_c: the motion of each body
+    under x (the ancestors' cdof times x), moved to the contact point and read in the contact frame. Row order as
+    MJX's: n + mu1 t1, n - mu1 t1, n + mu2 t2, n - mu2 t2, contact by contact."""
+    cdof, com, pos, frame, fric = parts
+    s = jnp.asarray(_ancestors(m)) @ (cdof * x[:, None])  # (nbody, 6): (rotation, translation)
+    root = jnp.asarray(m.body_rootid)
+
+    def point(b):
+        return s[b, 3:] + jnp.cross(s[b, :3], pos - com[root[b]])
+
+    u = jnp.einsum("cij,cj->ci", frame, point(bodies[:, 1]) - point(bodies[:, 0]))
+    t1, t2 = fric[:, :1] * u[:, 1:2], fric[:, 1:2] * u[:, 2:3]
+    rows = jnp.concatenate([u[:, :1] + t1, u[:, :1] - t1, u[:, :1] + t2, u[:, :1] - t2], axis=1)
+    return (rows * active[:, None]).reshape(-1)
+
+
+def _rows_t_times(m, parts, bodies, active, f):
+    """J_c^T f for the pyramidal contact rows, without forming J_c: each contact's force in world axes, as a
+    spatial force about the root's subtree centre of mass on its two bodies, summed per body and read by every
+    dof that moves the body."""
+    cdof, com, pos, frame, fric = parts
+    f = f.reshape(-1, 4) * active[:, None]
+    g = jnp.stack([f.sum(1), fric[:, 0] * (f[:, 0] - f[:, 1]), fric[:, 1] * (f[:, 2] - f[:, 3])], axis=1)
+    w = jnp.einsum("cij,ci->cj", frame, g)
+    root = jnp.asarray(m.body_rootid)
+
+    def on_body(b):
+        off = pos - com[root[b]]
+        return jax.nn.one_hot(b, m.nbody, dtype=w.dtype).T @ jnp.concatenate([jnp.cross(off, w), w], axis=1)
+
+    per_body = on_body(bodies[:, 1]) - on_body(bodies[:, 0])  # (nbody, 6)
+    return jnp.sum(cdof * (jnp.asarray(_ancestors(m)).T @ per_body), axis=1)
+
+
+def _check_free(m, d):
+    """Mode jvpf handles models whose rows are hinge/slide limits (constant rows) then condim-3 pyramidal
+    contacts; anything else raises before tracing goes on."""
+    c = d._impl.contact
+    typ = constraint.make_efc_type(m, np.asarray(c.dim))
+    n0 = typ.size - 4 * c.dim.size
+    limited = np.asarray(m.jnt_limited).astype(bool)
+    ok = (np.all(np.asarray(c.dim) == 3) and np.all(typ[:n0] == ConstraintType.LIMIT_JOINT)
+          and np.all(np.isin(np.asarray(m.jnt_type)[limited], (JointType.HINGE, JointType.SLIDE)))
+          and np.all(typ[n0:] == ConstraintType.CONTACT_PYRAMIDAL) and m.opt.cone == 0)
+    if not ok:
+        raise ValueError("jvpf handles joint-limit rows and condim-3 pyramidal contacts only")
+    return n0
+
+
+def _attach_forward(m, d, a_star, frc, efc, kept: bool = False, written: bool = False, free: bool = False):
     """`hexjax.sim.implicit._attach` for forward mode: (a_star, frc, efc) unchanged in value, with tangents from
     the float arrays of (m, d) by the implicit function theorem (module docstring).
 
@@ -106,9 +189,13 @@ def _attach_forward(m, d, a_star, frc, efc, kept: bool = False, written: bool = 
     at fixed a also comes from the solver's last state (Jaref, active set) rather than a second linearisation. For
     the pyramidal cone with no friction loss, where MJX's update is f = -D (J a - aref) on the active rows and
     C_qfrc = J^T f:
-        d f = -(dD Jaref + D (dJ a - daref)) active,   d C_qfrc = dJ^T f + J^T d f,   d(M a) = dM a."""
+        d f = -(dD Jaref + D (dJ a - daref)) active,   d C_qfrc = dJ^T f + J^T d f,   d(M a) = dM a.
+    `free` (jvpf, with both): the contact rows' dJ a, dJ^T f and dJ qvel (in daref: MJX's aref has
+    -b J qvel) are directional derivatives of `_rows_times` and `_rows_t_times`, matrix-free; the tangent of
+    efc_J is cut where MJX makes the rows (`_pyramidal_no_tangent`), so it is never formed."""
     if written and (m._impl.dof_hasfrictionloss.any() or m._impl.tendon_hasfrictionloss.any()):
         raise ValueError("jvpm writes the derivative for models without friction loss only")
+    n0 = _check_free(m, d) if free else 0  # the first contact row
     last = tuple(jax.lax.stop_gradient(x) for x in _KEPT.pop()) if kept else ()  # (factor, Jaref, active)
     xs, fl, ints, rebuild = implicit.traced_leaves(m, d)
 
@@ -125,8 +212,24 @@ def _attach_forward(m, d, a_star, frc, efc, kept: bool = False, written: bool = 
         if written:
             _, jaref, active = last_
             _, td = rebuild_f(tangents[0])
-            e1 = -(td._impl.efc_D * jaref + dd * (td._impl.efc_J @ a - td._impl.efc_aref)) * active
-            q1 = td._impl.efc_J.T @ e + j.T @ e1
+            if free:
+                parts, tparts, c = _contact_parts(d_), _contact_parts(td), d_._impl.contact
+                bodies = jnp.asarray(m.geom_bodyid)[c.geom]
+                on = (c.dist - c.includemargin) < 0
+
+                def dj(x):  # dJ x on every row (the limit rows' J is constant)
+                    t = jax.jvp(lambda p: _rows_times(m, p, bodies, on, x), (parts,), (tparts,))[1]
+                    return jnp.concatenate([jnp.zeros(n0, t.dtype), t])
+
+                b = jax.vmap(lambda sr, si: constraint._kbi(m_, sr, si, jnp.zeros(()))[1])(c.solref, c.solimp)
+                b = jnp.concatenate([jnp.zeros(n0, b.dtype), jnp.repeat(b, 4)])
+                daref = td._impl.efc_aref - b * dj(d_.qvel)
+                djt_e = jax.jvp(lambda p: _rows_t_times(m, p, bodies, on, e[n0:]), (parts,), (tparts,))[1]
+            else:
+                daref, djt_e = td._impl.efc_aref, td._impl.efc_J.T @ e
+                dj = lambda x: td._impl.efc_J @ x  # noqa: E731
+            e1 = -(td._impl.efc_D * jaref + dd * (dj(a) - daref)) * active
+            q1 = djt_e + j.T @ e1
             g1 = support.mul_m(m_, d_.tree_replace({"_impl.M": td._impl.M}), a) - td.qfrc_smooth
         else:
             def update(a_, xf_):
@@ -151,12 +254,14 @@ def _attach_forward(m, d, a_star, frc, efc, kept: bool = False, written: bool = 
 def forward_rule(mode: str):
     """While open, a program traced takes the forward-mode rule of `mode` (jvp, jvp1, jvpk, jvpm) in place of the
     reverse one (`hexjax.sim.implicit._attach`); jvpk and jvpm also run `_solve_keep` as the solver."""
-    kept = mode in ("jvpk", "jvpm")
+    kept, free = mode in ("jvpk", "jvpm", "jvpf"), mode == "jvpf"
     with contextlib.ExitStack() as stack:
         if kept:
             stack.enter_context(swapped(implicit, "_MJX_SOLVE", _solve_keep))
+        if free:
+            stack.enter_context(swapped(constraint, "_efc_contact_pyramidal", _pyramidal_no_tangent))
         stack.enter_context(swapped(implicit, "_attach", functools.partial(
-            _attach_forward, kept=kept, written=mode == "jvpm")))
+            _attach_forward, kept=kept, written=mode in ("jvpm", "jvpf"), free=free)))
         yield
 
 
@@ -200,15 +305,18 @@ def main():
     ap.add_argument("--json", default="")
     a = ap.parse_args()
     modes = a.modes.split(",")
-    bad = [m for m in modes if m not in ("forward", "jvp", "jvp1", "jvpk", "jvpm", "rev")]
+    bad = [m for m in modes if m not in ("forward", "jvp", "jvp1", "jvpk", "jvpm", "jvpf", "rev")]
     if bad or modes[0] != "forward":
-        raise SystemExit(f"--modes {a.modes!r}: forward first, then any of jvp, jvp1, jvpk, jvpm, rev")
+        raise SystemExit(f"--modes {a.modes!r}: forward first, then any of jvp, jvp1, jvpk, jvpm, jvpf, rev")
     pb = Problem.build(dataclasses.replace(load_tune_config(a.tune), solver_grad="implicit"))
     u0 = pb.space.init(pb.params0)
     terr, keys = pb.train_batch(0, a.batch)
     n_phys = physics_steps(pb, a.duration)
     rows = []
     for mode in modes:
+        # the rollout's inner jitted functions keep their traces by argument; a rule swapped in below would not
+        # reach a program whose inner trace a previous mode left in JAX's caches
+        jax.clear_caches()
         if mode in ("forward", "rev"):
             f, rule = objective_program(pb, grad=mode == "rev", duration=a.duration), contextlib.nullcontext()
         else:  # the forward-mode rule in place of the reverse one while the program traces
@@ -224,7 +332,7 @@ def main():
             row["compile_vs_forward"] = round(compile_s / rows[0]["compile_s"], 2)
         rows.append(row)
         print(json.dumps(row), flush=True)
-    grads = {r["mode"]: np.array(r["grad"]) for r in rows if r["mode"] in ("jvp", "jvpk", "jvpm", "rev")}
+    grads = {r["mode"]: np.array(r["grad"]) for r in rows if r["mode"] in ("jvp", "jvpk", "jvpm", "jvpf", "rev")}
     res = dict(tune=a.tune, backend=jax.default_backend(), device=str(jax.devices()[0].device_kind),
                physics_steps_per_env=n_phys, duration=a.duration,
                integrator_rule=not a.no_integrator_rule, jax=jax.__version__, date=time.strftime("%Y-%m-%d"),
@@ -233,7 +341,7 @@ def main():
         x, y = grads["jvp"], grads["rev"]
         res["cosine_jvp_rev"] = float(x @ y / (np.linalg.norm(x) * np.linalg.norm(y)))
         print(f"cosine(jvp, rev) {res['cosine_jvp_rev']:.4f}")
-    for k in ("jvpk", "jvpm"):  # the rule's variants give jvp's gradient, to rounding
+    for k in ("jvpk", "jvpm", "jvpf"):  # the rule's variants give jvp's gradient, to rounding
         if "jvp" in grads and k in grads:
             x, y = grads["jvp"], grads[k]
             res[f"max_rel_diff_{k}_jvp"] = float(np.max(np.abs(y - x)) / np.max(np.abs(x)))
