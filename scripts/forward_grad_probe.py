@@ -26,8 +26,13 @@ direction, the sum of all: the cost of a single tangent), rev (the tuner's rever
 variants of jvp's rule (2026-11-27, tenth session): jvpk takes the Newton Hessian's Cholesky factor from the
 solver's last iteration instead of rebuilding it (`_solve_keep`, a copy of MJX's solve that returns it), and
 jvpm also writes the constraint update's derivative in theta out for the pyramidal cone, from the solver's last
-state, instead of linearising MJX's update a second time (`_attach_forward`'s options). Both give jvp's gradient to rounding
-(docs/tuning.md, "Both taken from the solver, measured").
+state, instead of linearising MJX's update a second time (`_attach_forward`'s options). Both give jvp's gradient to
+rounding (docs/tuning.md, "Both taken from the solver, measured"). jvpf (2026-11-27, eleventh session) also takes the contact
+rows' dJ a, dJ^T f and dJ qvel matrix-free, so the tangent of efc_J is never formed: the rule that the package now
+carries (`hexjax.sim.forward_mode`, `TuneConfig.backward: forward`, `hexjax bench --grad --backward forward`); this
+script keeps its own copy beside the earlier variants, for the A/B. Each mode is traced after JAX's caches are
+cleared: the rollout's inner jitted functions keep their traces, so before that fix a mode traced after another in
+one process ran the first one's rule.
 
     python scripts/forward_grad_probe.py --batch 8 --modes forward,jvp1,jvp,rev --json out/fwd_probe.json
 """
@@ -44,11 +49,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
-from mujoco.mjx._src import math as mjx_math
 from mujoco.mjx._src import constraint, solver, support
-from mujoco.mjx._src.types import ConstraintType, DisableBit, JointType
 
 from hexjax.experiments.bench_grad import _time, objective_program, physics_steps
+from hexjax.sim import forward_mode as fm
 from hexjax.sim import implicit, rollout
 from hexjax.sim.model import swapped
 from hexjax.sim.rollout import rollout_function
@@ -59,125 +63,12 @@ from hexjax.tune.objective import Problem, per_env_objective
 _KEPT = []  # the last solve's (Cholesky factor of H, Jaref, active), from `_solve_keep` to the rule that follows it
 
 
-def _gradient_keep(m, d, ctx):
-    """MJX's `solver._update_gradient` for the Newton solver and the pyramidal cone, op for op, that also returns
-    the Cholesky factor of H (upper triangle, as `cho_factor` gives it)."""
-    grad = ctx.Ma - d.qfrc_smooth - ctx.qfrc_constraint
-    h = support.full_m(m, d) + (d._impl.efc_J.T * d._impl.efc_D * ctx.active) @ d._impl.efc_J
-    c = jax.scipy.linalg.cho_factor((h + h.T) * 0.5)
-    return ctx.replace(grad=grad, Mgrad=jax.scipy.linalg.cho_solve(c, grad)), c[0]
-
-
 def _solve_keep(m, d):
-    """MJX's `solver.solve` (mujoco-mjx 3.17.0; Newton, pyramidal cone), the same values, with the factor of its
-    last `_update_gradient` (at the solution) and that iteration's Jaref and active set kept in `_KEPT`."""
-    def cond(carry):
-        ctx = carry[0]
-        done = ctx.solver_niter >= m.opt.iterations
-        done |= solver._rescale(m, d, ctx.prev_cost - ctx.cost) < m.opt.tolerance
-        done |= solver._rescale(m, d, mjx_math.norm(ctx.grad)) < m.opt.tolerance
-        return ~done
-
-    def body(carry):
-        ctx = solver._update_constraint(m, d, solver._linesearch(m, d, carry[0]))
-        ctx, chol = _gradient_keep(m, d, ctx)
-        return ctx.replace(search=-ctx.Mgrad, solver_niter=ctx.solver_niter + 1), chol
-
-    qacc = d.qacc_smooth
-    if not m.opt.disableflags & DisableBit.WARMSTART:
-        warm = solver.Context.create(m, d.replace(qacc=d.qacc_warmstart), grad=False)
-        smth = solver.Context.create(m, d.replace(qacc=d.qacc_smooth), grad=False)
-        qacc = jnp.where(warm.cost < smth.cost, d.qacc_warmstart, d.qacc_smooth)
-    d = d.replace(qacc=qacc)
-    ctx, chol = _gradient_keep(m, d, solver.Context.create(m, d, grad=False))
-    carry = (ctx.replace(search=-ctx.Mgrad), chol)
-    ctx, chol = body(carry) if m.opt.iterations == 1 else jax.lax.while_loop(cond, body, carry)
-    _KEPT.append((chol, ctx.Jaref, ctx.active))
-    return d.tree_replace({"qfrc_constraint": ctx.qfrc_constraint, "qacc": ctx.qacc,
-                           "_impl.efc_force": ctx.efc_force})
-
-
-def _pyramidal_no_tangent(m, d, condim):
-    """MJX's pyramidal contact rows with the Jacobian's tangent cut (mode jvpf): its value is MJX's, and
-    `_attach_forward` takes the products of its tangent from `_rows_times` and `_rows_t_times` instead, so
-    the tangent of the (rows x nv) matrix is never formed."""
-    efc = _MJX_PYRAMIDAL(m, d, condim)
-    return None if efc is None else efc.replace(J=jax.lax.stop_gradient(efc.J))
-
-
-_MJX_PYRAMIDAL = constraint._efc_contact_pyramidal
-
-
-def _ancestors(m) -> np.ndarray:
-    """(nbody, nv): 1 where the dof moves body b (its body is b or an ancestor of b). `support.jac`'s mask for
-    every body at once, made static."""
-    parent, nb = np.asarray(m.body_parentid), m.nbody
-    anc = np.zeros((nb, nb), np.float32)
-    for b in range(nb):
-        a = b
-        while True:
-            anc[b, a] = 1.0
-            if a == 0:
-                break
-            a = parent[a]
-    return anc[:, np.asarray(m.dof_bodyid)]
-
-
-def _contact_parts(d):
-    """The float inputs of MJX's pyramidal contact rows (`constraint._efc_contact_pyramidal`), those that carry
-    tangents: cdof, subtree_com, and the contacts' points, frames and friction."""
-    c = d._impl.contact
-    return d.cdof, d.subtree_com, c.pos, c.frame, c.friction
-
-
-def _rows_times(m, parts, bodies, active, x):
-    """J_c x for the 4 pyramidal rows of every contact (condim 3), without forming J_c: the motion of each body
-    under x (the ancestors' cdof times x), moved to the contact point and read in the contact frame. Row order as
-    MJX's: n + mu1 t1, n - mu1 t1, n + mu2 t2, n - mu2 t2, contact by contact."""
-    cdof, com, pos, frame, fric = parts
-    s = jnp.asarray(_ancestors(m)) @ (cdof * x[:, None])  # (nbody, 6): (rotation, translation)
-    root = jnp.asarray(m.body_rootid)
-
-    def point(b):
-        return s[b, 3:] + jnp.cross(s[b, :3], pos - com[root[b]])
-
-    u = jnp.einsum("cij,cj->ci", frame, point(bodies[:, 1]) - point(bodies[:, 0]))
-    t1, t2 = fric[:, :1] * u[:, 1:2], fric[:, 1:2] * u[:, 2:3]
-    rows = jnp.concatenate([u[:, :1] + t1, u[:, :1] - t1, u[:, :1] + t2, u[:, :1] - t2], axis=1)
-    return (rows * active[:, None]).reshape(-1)
-
-
-def _rows_t_times(m, parts, bodies, active, f):
-    """J_c^T f for the pyramidal contact rows, without forming J_c: each contact's force in world axes, as a
-    spatial force about the root's subtree centre of mass on its two bodies, summed per body and read by every
-    dof that moves the body."""
-    cdof, com, pos, frame, fric = parts
-    f = f.reshape(-1, 4) * active[:, None]
-    g = jnp.stack([f.sum(1), fric[:, 0] * (f[:, 0] - f[:, 1]), fric[:, 1] * (f[:, 2] - f[:, 3])], axis=1)
-    w = jnp.einsum("cij,ci->cj", frame, g)
-    root = jnp.asarray(m.body_rootid)
-
-    def on_body(b):
-        off = pos - com[root[b]]
-        return jax.nn.one_hot(b, m.nbody, dtype=w.dtype).T @ jnp.concatenate([jnp.cross(off, w), w], axis=1)
-
-    per_body = on_body(bodies[:, 1]) - on_body(bodies[:, 0])  # (nbody, 6)
-    return jnp.sum(cdof * (jnp.asarray(_ancestors(m)).T @ per_body), axis=1)
-
-
-def _check_free(m, d):
-    """Mode jvpf handles models whose rows are hinge/slide limits (constant rows) then condim-3 pyramidal
-    contacts; anything else raises before tracing goes on."""
-    c = d._impl.contact
-    typ = constraint.make_efc_type(m, np.asarray(c.dim))
-    n0 = typ.size - 4 * c.dim.size
-    limited = np.asarray(m.jnt_limited).astype(bool)
-    ok = (np.all(np.asarray(c.dim) == 3) and np.all(typ[:n0] == ConstraintType.LIMIT_JOINT)
-          and np.all(np.isin(np.asarray(m.jnt_type)[limited], (JointType.HINGE, JointType.SLIDE)))
-          and np.all(typ[n0:] == ConstraintType.CONTACT_PYRAMIDAL) and m.opt.cone == 0)
-    if not ok:
-        raise ValueError("jvpf handles joint-limit rows and condim-3 pyramidal contacts only")
-    return n0
+    """MJX's `solver.solve` (Newton, pyramidal cone), the same values, by `hexjax.sim.forward_mode._solve_keep`; the
+    factor of its last iteration and that iteration's Jaref and active set go to `_KEPT`."""
+    qacc, frc, efc, last = fm._solve_keep(m, d)
+    _KEPT.append(last)
+    return d.tree_replace({"qfrc_constraint": frc, "qacc": qacc, "_impl.efc_force": efc})
 
 
 def _attach_forward(m, d, a_star, frc, efc, kept: bool = False, written: bool = False, free: bool = False):
@@ -195,7 +86,7 @@ def _attach_forward(m, d, a_star, frc, efc, kept: bool = False, written: bool = 
     efc_J is cut where MJX makes the rows (`_pyramidal_no_tangent`), so it is never formed."""
     if written and (m._impl.dof_hasfrictionloss.any() or m._impl.tendon_hasfrictionloss.any()):
         raise ValueError("jvpm writes the derivative for models without friction loss only")
-    n0 = _check_free(m, d) if free else 0  # the first contact row
+    n0 = fm.check_model(m) if free else 0  # the first contact row
     last = tuple(jax.lax.stop_gradient(x) for x in _KEPT.pop()) if kept else ()  # (factor, Jaref, active)
     xs, fl, ints, rebuild = implicit.traced_leaves(m, d)
 
@@ -213,18 +104,17 @@ def _attach_forward(m, d, a_star, frc, efc, kept: bool = False, written: bool = 
             _, jaref, active = last_
             _, td = rebuild_f(tangents[0])
             if free:
-                parts, tparts, c = _contact_parts(d_), _contact_parts(td), d_._impl.contact
-                bodies = jnp.asarray(m.geom_bodyid)[c.geom]
-                on = (c.dist - c.includemargin) < 0
+                parts, tparts, c = fm.contact_parts(d_), fm.contact_parts(td), d_._impl.contact
+                bodies, on = fm._contacts(m, d_)
 
                 def dj(x):  # dJ x on every row (the limit rows' J is constant)
-                    t = jax.jvp(lambda p: _rows_times(m, p, bodies, on, x), (parts,), (tparts,))[1]
+                    t = jax.jvp(lambda p: fm.rows_times(m, p, bodies, on, x), (parts,), (tparts,))[1]
                     return jnp.concatenate([jnp.zeros(n0, t.dtype), t])
 
                 b = jax.vmap(lambda sr, si: constraint._kbi(m_, sr, si, jnp.zeros(()))[1])(c.solref, c.solimp)
                 b = jnp.concatenate([jnp.zeros(n0, b.dtype), jnp.repeat(b, 4)])
                 daref = td._impl.efc_aref - b * dj(d_.qvel)
-                djt_e = jax.jvp(lambda p: _rows_t_times(m, p, bodies, on, e[n0:]), (parts,), (tparts,))[1]
+                djt_e = jax.jvp(lambda p: fm.rows_t_times(m, p, bodies, on, e[n0:]), (parts,), (tparts,))[1]
             else:
                 daref, djt_e = td._impl.efc_aref, td._impl.efc_J.T @ e
                 dj = lambda x: td._impl.efc_J @ x  # noqa: E731
@@ -259,7 +149,7 @@ def forward_rule(mode: str):
         if kept:
             stack.enter_context(swapped(implicit, "_MJX_SOLVE", _solve_keep))
         if free:
-            stack.enter_context(swapped(constraint, "_efc_contact_pyramidal", _pyramidal_no_tangent))
+            stack.enter_context(swapped(constraint, "_efc_contact_pyramidal", fm._pyramidal_no_tangent))
         stack.enter_context(swapped(implicit, "_attach", functools.partial(
             _attach_forward, kept=kept, written=mode in ("jvpm", "jvpf"), free=free)))
         yield

@@ -1,7 +1,9 @@
 """Implicit differentiation of MJX's constraint solve (`hexjax.sim.implicit`): same values as MJX, and where
 the solver has converged the same derivatives as differentiating its unrolled Newton iterations, which
 match central differences. The rollout-level checks (per parameter group, against central differences and
-against the unrolled path) are in tests/test_tune.py."""
+against the unrolled path) are in tests/test_tune.py. Forward mode's matrix-free contact rows
+(`hexjax.sim.forward_mode`) are checked here too, on the same standing state; its gradient in
+tests/test_forward_mode.py."""
 
 import dataclasses
 
@@ -10,10 +12,12 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 import pytest
+from mujoco.mjx._src import forward as mjx_forward
 
 from hexjax.control.gait import GaitController
 from hexjax.sim.compiled import Compiled, arrays_digest
 from hexjax.sim.config import PhysicsConfig, RolloutConfig, physics_for
+from hexjax.sim.forward_mode import _contacts, check_model, contact_parts, rows_t_times, rows_times
 from hexjax.sim.implicit import implicit_solve, implicit_solver
 from hexjax.sim.model import mjx, reversible_solver, sim_model
 from hexjax.sim.rollout import rollout_function
@@ -301,3 +305,33 @@ def test_integrator_rule_keeps_mjx_values_and_derivative(standing):
         with integrator_rule():
             raise RuntimeError("inside")
     assert mjx_forward.implicit is mjx_implicit
+
+
+def test_matrix_free_rows_match_mjx_with_their_derivative(standing):
+    """J x and J^T f of the contact rows, from `rows_times` / `rows_t_times`, against MJX's efc_J at the standing
+    state, and the tangents of both along a random change of qpos (through MJX's kinematics and collisions): equal
+    to float32 rounding (1e-5 of the largest value, 1e-4 of the largest tangent)."""
+    m, d = standing
+    n0 = check_model(m)
+    rng = np.random.default_rng(0)
+    ncon = d._impl.contact.dist.shape[0]
+    x = jnp.asarray(rng.normal(size=m.nv), jnp.float32)
+    f = jnp.asarray(rng.normal(size=4 * ncon), jnp.float32)
+    dq = jnp.asarray(rng.normal(size=m.nq), jnp.float32)
+
+    def products(q):
+        d2 = mjx_forward.fwd_position(m, d.replace(qpos=q))
+        bodies, on = _contacts(m, d2)
+        parts, jac = contact_parts(d2), d2._impl.efc_J[n0:]
+        return (jac @ x, rows_times(m, parts, bodies, on, x), jac.T @ f, rows_t_times(m, parts, bodies, on, f),
+                jnp.sum(on))
+
+    vals, tans = Compiled(jax.jit(lambda q, t: jax.jvp(products, (q,), (t,))),
+                          static=("test_forward_mode/products", arrays_digest(d)))(d.qpos, dq)
+    assert int(vals[4]) >= 6, "expected the feet in contact"
+    for mjx_v, ours, tol in ((vals[0], vals[1], 1e-5), (vals[2], vals[3], 1e-5),
+                             (tans[0], tans[1], 1e-4), (tans[2], tans[3], 1e-4)):
+        mjx_v, ours = np.asarray(mjx_v), np.asarray(ours)
+        scale = np.max(np.abs(mjx_v))
+        assert scale > 1e-2, mjx_v  # a zero on both sides would pass any comparison
+        assert np.max(np.abs(ours - mjx_v)) <= tol * scale, (ours, mjx_v)

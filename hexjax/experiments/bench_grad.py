@@ -8,7 +8,9 @@ For one tuning config (configs/tune/*.yaml) and each batch size, times in one pr
   `hexjax.tune.objective.Problem.train_rollout`) with each way through MJX's
   constraint solve (`RolloutConfig.solver_grad`: 'unrolled' Newton iterations or 'implicit' differentiation),
   and with each way to run its backward pass (`TuneConfig.backward`: 'sequential' reverse mode through the
-  rollout's scan, 'parallel' the windows side by side, `hexjax.sim.windows`; rows `grad-<solver>-parallel`),
+  rollout's scan, 'parallel' the windows side by side, `hexjax.sim.windows`; rows `grad-<solver>-parallel`;
+  'forward' no backward pass, forward mode, `hexjax.sim.forward_mode`: rows `grad-implicit-forward`, taken
+  without the config's grad_clip, which bounds reverse mode's cotangents only: each row records its bound),
 and reports env-steps/s, the gradient's rate as a share of the forward's, and both compile times.
 Compile times are what this process paid: with a warm compilation cache they are loads (set
 HEXJAX_CACHE_DIR=off to measure compiles).
@@ -86,9 +88,13 @@ def bench_grad(tune: str = "tactile_tripod", batches: Sequence[int] = (64,),
     bad = [b for b in backwards if b not in BACKWARDS]
     if bad or not backwards:
         raise ValueError(f"backward={list(backwards)!r}: a comma list of {BACKWARDS}")
+    if "forward" in backwards and "unrolled" in solver_grads:
+        raise ValueError("backward 'forward' goes through the solve by implicit differentiation: pass "
+                         "solver_grad=implicit only with it")
     cfg = load_tune_config(tune, {"unroll_substeps": unroll_substeps} if unroll_substeps else None)
-    problems = {s + ("-parallel" if b == "parallel" else ""): Problem.build(dataclasses.replace(cfg, solver_grad=s,
-                                                                                               backward=b))
+    problems = {s + ("" if b == "sequential" else "-" + b):
+                Problem.build(dataclasses.replace(cfg, solver_grad=s, backward=b,
+                                                  grad_clip=None if b == "forward" else cfg.grad_clip))
                 for s in solver_grads for b in backwards}
     base = next(iter(problems.values()))
     n_phys = physics_steps(base)
@@ -108,7 +114,7 @@ def bench_grad(tune: str = "tactile_tripod", batches: Sequence[int] = (64,),
             (loss, _), g = out
             flat = np.asarray(ravel_pytree(g)[0])
             row.update(loss=float(loss), grad_norm=float(np.linalg.norm(flat)),
-                       grad_nonfinite=int(np.sum(~np.isfinite(flat))))
+                       grad_nonfinite=int(np.sum(~np.isfinite(flat))), grad_clip=problems[mode].cfg.grad_clip)
             fwd = next(r for r in rows if r["batch"] == b and r["mode"] == "forward")
             row["rate_vs_forward"] = round(row["env_steps_per_s"] / fwd["env_steps_per_s"], 4)
             row["compile_vs_forward"] = round(compile_s / max(fwd["compile_s"], 1e-9), 2)
@@ -130,12 +136,12 @@ def format_bench_grad(res: dict) -> str:
              f"({res['duration_s']:.2f} s walk, {res['physics_steps_per_env']} physics steps per env, "
              f"{res['window_s']} s windows, {res['solver_iterations']} Newton iterations"
              + (", physics steps unrolled)" if res.get("unroll_substeps") else ")"),
-             f"{'batch':>6} {'mode':<15} {'compile s':>9} {'x fwd':>6} {'env-steps/s':>12} {'% of fwd':>8} "
+             f"{'batch':>6} {'mode':<21} {'compile s':>9} {'x fwd':>6} {'env-steps/s':>12} {'% of fwd':>8} "
              f"{'loss':>9} {'|grad|':>9} {'nonfinite':>9}"]
     for r in res["rows"]:
         pct = f"{100 * r['rate_vs_forward']:7.1f}%" if "rate_vs_forward" in r else ""
         cx = f"{r['compile_vs_forward']:6.2f}" if "compile_vs_forward" in r else ""
         gn = f"{r['grad_norm']:9.3g} {r['grad_nonfinite']:9d}" if "grad_norm" in r else ""
-        lines.append(f"{r['batch']:6d} {r['mode']:<15} {r['compile_s']:9.1f} {cx:>6} {r['env_steps_per_s']:12.0f} "
+        lines.append(f"{r['batch']:6d} {r['mode']:<21} {r['compile_s']:9.1f} {cx:>6} {r['env_steps_per_s']:12.0f} "
                      f"{pct:>8} {r['loss']:9.4f} {gn}")
     return "\n".join(lines)

@@ -50,6 +50,7 @@ class SensorConfig:
 
 GRAD_SOLVERS = ("unrolled", "implicit")  # the values of RolloutConfig.solver_grad that reverse mode goes through
 SOLVER_GRADS = ("none",) + GRAD_SOLVERS
+GRAD_MODES = ("reverse", "forward")  # the values of RolloutConfig.grad_mode
 
 
 @dataclasses.dataclass(frozen=True)
@@ -91,6 +92,11 @@ class RolloutConfig:
     #               with the Newton Hessian per physics step in the backward pass; exact where the solver
     #               has converged
     solver_grad: str = "none"
+    # How the gradient is carried: 'reverse' (jax.grad, the default) or 'forward' (jax.jacfwd, one tangent per
+    # tuned number beside the primal; `hexjax.sim.forward_mode` gives MJX's solve its forward-mode rule). Forward
+    # mode needs solver_grad='implicit' and has no remat (no backward pass) and no grad_clip (it bounds a
+    # cotangent); it pays where the tuned numbers are few (docs/tuning.md, "Forward mode").
+    grad_mode: str = "reverse"
     # Every this many control steps the compiled rollout reports its step index to the host (see
     # `progress_to`); 0: never. A host callback costs ~0.1 ms, so a few hundred calls are free.
     progress_every: int = 0
@@ -98,6 +104,18 @@ class RolloutConfig:
     def validate(self) -> None:
         if self.solver_grad not in SOLVER_GRADS:
             raise ValueError(f"rollout.solver_grad={self.solver_grad!r}: use one of {SOLVER_GRADS}")
+        if self.grad_mode not in GRAD_MODES:
+            raise ValueError(f"rollout.grad_mode={self.grad_mode!r}: use one of {GRAD_MODES}")
+        if self.grad_mode == "forward":
+            if self.solver_grad != "implicit":
+                raise ValueError(f"rollout.grad_mode='forward' with rollout.solver_grad={self.solver_grad!r}: "
+                                 "forward mode goes through the solve by implicit differentiation; use 'implicit'")
+            if self.remat:
+                raise ValueError("rollout.grad_mode='forward' with rollout.remat=True: remat serves reverse mode's "
+                                 "backward pass, which forward mode does not have; set remat=False")
+            if self.grad_clip is not None:
+                raise ValueError(f"rollout.grad_mode='forward' with rollout.grad_clip={self.grad_clip!r}: the bound "
+                                 "acts on reverse mode's cotangents and has no forward-mode counterpart; set None")
         if not (isinstance(self.grad_window, int) and self.grad_window >= 0):
             raise ValueError(f"rollout.grad_window={self.grad_window!r}: must be an integer >= 0")
         if not isinstance(self.unroll_substeps, bool):

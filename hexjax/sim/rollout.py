@@ -22,6 +22,7 @@ from hexjax.sim import perturb
 from hexjax.sim.backends.mujoco_c import rollout_c
 from hexjax.sim.compiled import Compiled
 from hexjax.sim.config import PhysicsConfig, RolloutConfig, SensorConfig
+from hexjax.sim.forward_mode import check_model, forward_solver
 from hexjax.sim.implicit import REMAT_POLICY, implicit_solver
 from hexjax.sim.model import integrator_rule, reversible_solver, rotation_rule, sim_model
 from hexjax.sim.step import Summary, control_steps, end_pose, make_control_step, make_env_start, settle_steps, substeps
@@ -60,6 +61,8 @@ def _compiled(robot: RobotSpec, physics: PhysicsConfig, sensors: SensorConfig, c
     """(SimModel, Compiled batched rollout) for one static setting; cached, as its compile is the cost. With a
     `mesh`, each device runs the vmapped rollout of its own envs (`jax.shard_map` over the 'batch' axis)."""
     sm = sim_model(robot, physics, impl)
+    if cfg.grad_mode == "forward":
+        check_model(sm.mjx_model)  # what forward mode's rule handles, before tracing
     n_settle = settle_steps(cfg, controller.dt)
     control_step = make_control_step(sm, sensors, cfg, controller, n_settle)
     env_start, _ = make_env_start(sm, cfg, controller)
@@ -118,11 +121,15 @@ def solver_context(cfg: RolloutConfig, physics: PhysicsConfig):
     as a scan ('unrolled'), implicit differentiation ('implicit'), or MJX's own while loop ('none'). The first
     two, which reverse mode goes through, also trace MJX's rotation matrices and its implicit integrator's linear
     solve with cheaper derivatives (`hexjax.sim.model.rotation_rule`, `integrator_rule`; same values);
-    forward-only rollouts ('none') are traced as MJX writes them."""
+    forward-only rollouts ('none') are traced as MJX writes them. With `cfg.grad_mode='forward'` the solve takes
+    forward mode's rule instead (`hexjax.sim.forward_mode.forward_solver`)."""
     if cfg.solver_grad == "none":
         yield
         return
-    solve = reversible_solver(physics.iterations) if cfg.solver_grad == "unrolled" else implicit_solver()
+    if cfg.grad_mode == "forward":  # validated: implicit
+        solve = forward_solver()
+    else:
+        solve = reversible_solver(physics.iterations) if cfg.solver_grad == "unrolled" else implicit_solver()
     with rotation_rule(), integrator_rule(), solve:
         yield
 

@@ -16,7 +16,7 @@ OBJECTIVE_TERMS = ("dx", "dy", "dalpha", "fall", "energy")
 OPTIMIZERS = ("adam", "sgd")
 ESTIMATORS = ("first_order", "hybrid")
 GATES = ("smooth", "straight_through")
-BACKWARDS = ("sequential", "parallel")
+BACKWARDS = ("sequential", "parallel", "forward")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -35,8 +35,9 @@ class TuneConfig:
     horizon: float = 10.0  # s walked by controllers without a planned stop (cpg); the tactile gait walks `distance`
     window: float = 0.2  # s: truncated-gradient window (`RolloutConfig.grad_window`)
     # bound on each env's backward flow through each control step (`RolloutConfig.grad_clip`), in units of
-    # that env's own objective, whatever train_batch (`objective.mean_value_and_grad`)
-    grad_clip: float = 1.0
+    # that env's own objective, whatever train_batch (`objective.mean_value_and_grad`); null: no bound (exact
+    # windowed gradients; what `backward: forward` takes)
+    grad_clip: Optional[float] = 1.0
     # smooth-gate temperature: the tactile pad gate (N), or the CPG's force gate temp_force (N); None keeps
     # the controller's own default (tactile 0.05, CPG 1 N with temp_phase 0.05 and temp_height 2 mm)
     temperature: Optional[float] = None
@@ -56,7 +57,10 @@ class TuneConfig:
     # every control step after the other; 'parallel' runs the windows' backward passes side by side,
     # train_batch x windows of them (`hexjax.sim.windows`): the same gradient, 2.7x faster on an H100 at 256
     # terrains, 5.5 % faster on 2 CPU cores at 64 but holding every step's state in memory (docs/tuning.md).
-    # First-order estimator only.
+    # 'forward' takes the same windowed gradient in forward mode, one tangent per tuned number beside the
+    # primal (`RolloutConfig.grad_mode`): one loop and no backward pass, the fastest where the tuned numbers are
+    # few (5 for the tactile preset: 38 % of the forward's rate on an H100); needs solver_grad: implicit and
+    # grad_clip: null (docs/tuning.md, "Forward mode"). First-order estimator only.
     backward: str = "sequential"
     # the gradient estimator of `hexjax.tune.grad` (docs/tuning.md, "The hybrid estimator"): 'first_order'
     # is the windowed pathwise gradient; 'hybrid' fits the whole walk's directional derivatives along
@@ -127,12 +131,18 @@ class TuneConfig:
             raise ValueError(f"tune.unroll_substeps={self.unroll_substeps!r}: must be true or false")
         if self.backward not in BACKWARDS:
             raise ValueError(f"tune.backward={self.backward!r}: use one of {BACKWARDS}")
-        if self.backward == "parallel" and self.estimator != "first_order":
-            raise ValueError(f"tune.backward='parallel' with tune.estimator={self.estimator!r}: the parallel "
-                             "backward pass serves the first-order estimator only; use backward: sequential")
+        if self.backward != "sequential" and self.estimator != "first_order":
+            raise ValueError(f"tune.backward={self.backward!r} with tune.estimator={self.estimator!r}: it serves "
+                             "the first-order estimator only; use backward: sequential")
+        if self.backward == "forward" and self.solver_grad != "implicit":
+            raise ValueError(f"tune.backward='forward' with tune.solver_grad={self.solver_grad!r}: forward mode "
+                             "goes through the solve by implicit differentiation; set solver_grad: implicit")
+        if self.backward == "forward" and self.grad_clip is not None:
+            raise ValueError(f"tune.backward='forward' with tune.grad_clip={self.grad_clip!r}: the bound acts on "
+                             "reverse mode's cotangents and has no forward-mode counterpart; set grad_clip: null")
         for f in ("distance", "horizon", "window", "grad_clip", "temperature", "es_sigma", "zo_sigma", "zo_prior"):
             v = getattr(self, f)
-            if f == "temperature" and v is None:
+            if f in ("temperature", "grad_clip") and v is None:
                 continue
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ValueError(f"tune.{f}={v!r}: must be a finite number > 0")

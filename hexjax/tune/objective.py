@@ -39,6 +39,7 @@ from typing import Any, Dict, Optional, Tuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.flatten_util import ravel_pytree
 
 from hexjax.control.cpg import CPGController
 from hexjax.control.tactile import TactileGaitController
@@ -186,10 +187,13 @@ class Problem:
 
     def gradient_program(self, duration: Optional[float] = None, settle_time: Optional[float] = None):
         """The function a first-order tuning step jits, f(u, terrain, keys) -> ((mean J, per-env J), d mean J / du),
-        with its backward pass as `backward` says: reverse mode through the rollout's scan (`value_and_grad`) or
-        the windows side by side (`parallel_value_and_grad`). `duration`, `settle_time` as `train_rollout`'s."""
+        with its backward pass as `backward` says: reverse mode through the rollout's scan (`value_and_grad`),
+        the windows side by side (`parallel_value_and_grad`), or no backward pass: forward mode
+        (`forward_value_and_grad`). `duration`, `settle_time` as `train_rollout`'s."""
         if self.cfg.backward == "parallel":
             return self.parallel_value_and_grad(duration, settle_time)
+        if self.cfg.backward == "forward":
+            return self.forward_value_and_grad(duration, settle_time)
         model, fn = self.train_rollout(grad=True, duration=duration, settle_time=settle_time)
         return self.value_and_grad(fn, model)
 
@@ -206,6 +210,30 @@ class Problem:
             (_, j), gp = vg(model, p, terrain, keys)
             n = j.shape[0]
             return (jnp.mean(j), j), jax.tree_util.tree_map(lambda x: x / n, back(gp)[0])
+
+        return f
+
+
+    def forward_value_and_grad(self, duration: Optional[float] = None, settle_time: Optional[float] = None):
+        """The same f(u, terrain, keys) as `value_and_grad`, its gradient taken in forward mode: `jax.jacfwd` of
+        sum J over the batch, one tangent per unconstrained number side by side, through the gradient rollout
+        without remat and with forward mode's rule for MJX's solve (`RolloutConfig.grad_mode='forward'`,
+        `hexjax.sim.forward_mode`). The windows cut the tangents at their starts, so it is the windowed gradient
+        of reverse mode without a bound (the config's grad_clip must be null)."""
+        rc = dataclasses.replace(self._rollout_config(True, settle_time), remat=False, grad_mode="forward")
+        walk = self.duration if duration is None else duration
+        model, fn = rollout_function(self.robot, self.train_ctrl, walk, physics=self.physics(), config=rc)
+        loss = self.loss_fn(fn, model)
+
+        def f(u, terrain, keys):
+            x, unravel = ravel_pytree(u)
+
+            def total(y):
+                _, j = loss(unravel(y), terrain, keys)
+                return jnp.sum(j), j
+
+            g, j = jax.jacfwd(total, has_aux=True)(x)
+            return (jnp.mean(j), j), unravel(g / j.shape[0])
 
         return f
 
