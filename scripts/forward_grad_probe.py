@@ -27,10 +27,10 @@ variants of jvp's rule (2026-11-27, tenth session): jvpk takes the Newton Hessia
 solver's last iteration instead of rebuilding it (`_solve_keep`, a copy of MJX's solve that returns it), and
 jvpm also writes the constraint update's derivative in theta out for the pyramidal cone, from the solver's last
 state, instead of linearising MJX's update a second time (`_attach_forward`'s options). Both give jvp's gradient to
-rounding (docs/tuning.md, "Both taken from the solver, measured"). jvpf (2026-11-27, eleventh session) also takes the contact
-rows' dJ a, dJ^T f and dJ qvel matrix-free, so the tangent of efc_J is never formed: the rule that the package now
-carries (`hexjax.sim.forward_mode`, `TuneConfig.backward: forward`, `hexjax bench --grad --backward forward`); this
-script keeps its own copy beside the earlier variants, for the A/B. Each mode is traced after JAX's caches are
+rounding (docs/tuning.md, "Both taken from the solver, measured"). jvpf (2026-11-27, eleventh session) also takes
+the contact rows' dJ a, dJ^T f and dJ qvel matrix-free, so the tangent of efc_J is never formed: the rule that the
+package now carries and this mode runs (`hexjax.sim.forward_mode`, `TuneConfig.backward: forward`, `hexjax bench
+--grad --backward forward`). Each mode is traced after JAX's caches are
 cleared: the rollout's inner jitted functions keep their traces, so before that fix a mode traced after another in
 one process ran the first one's rule.
 
@@ -71,7 +71,7 @@ def _solve_keep(m, d):
     return d.tree_replace({"qfrc_constraint": frc, "qacc": qacc, "_impl.efc_force": efc})
 
 
-def _attach_forward(m, d, a_star, frc, efc, kept: bool = False, written: bool = False, free: bool = False):
+def _attach_forward(m, d, a_star, frc, efc, kept: bool = False, written: bool = False):
     """`hexjax.sim.implicit._attach` for forward mode: (a_star, frc, efc) unchanged in value, with tangents from
     the float arrays of (m, d) by the implicit function theorem (module docstring).
 
@@ -81,12 +81,9 @@ def _attach_forward(m, d, a_star, frc, efc, kept: bool = False, written: bool = 
     the pyramidal cone with no friction loss, where MJX's update is f = -D (J a - aref) on the active rows and
     C_qfrc = J^T f:
         d f = -(dD Jaref + D (dJ a - daref)) active,   d C_qfrc = dJ^T f + J^T d f,   d(M a) = dM a.
-    `free` (jvpf, with both): the contact rows' dJ a, dJ^T f and dJ qvel (in daref: MJX's aref has
-    -b J qvel) are directional derivatives of `_rows_times` and `_rows_t_times`, matrix-free; the tangent of
-    efc_J is cut where MJX makes the rows (`_pyramidal_no_tangent`), so it is never formed."""
+    Mode jvpf does not come here: it runs the package's rule (`hexjax.sim.forward_mode.forward_solve`)."""
     if written and (m._impl.dof_hasfrictionloss.any() or m._impl.tendon_hasfrictionloss.any()):
         raise ValueError("jvpm writes the derivative for models without friction loss only")
-    n0 = fm.check_model(m) if free else 0  # the first contact row
     last = tuple(jax.lax.stop_gradient(x) for x in _KEPT.pop()) if kept else ()  # (factor, Jaref, active)
     xs, fl, ints, rebuild = implicit.traced_leaves(m, d)
 
@@ -103,23 +100,8 @@ def _attach_forward(m, d, a_star, frc, efc, kept: bool = False, written: bool = 
         if written:
             _, jaref, active = last_
             _, td = rebuild_f(tangents[0])
-            if free:
-                parts, tparts, c = fm.contact_parts(d_), fm.contact_parts(td), d_._impl.contact
-                bodies, on = fm._contacts(m, d_)
-
-                def dj(x):  # dJ x on every row (the limit rows' J is constant)
-                    t = jax.jvp(lambda p: fm.rows_times(m, p, bodies, on, x), (parts,), (tparts,))[1]
-                    return jnp.concatenate([jnp.zeros(n0, t.dtype), t])
-
-                b = jax.vmap(lambda sr, si: constraint._kbi(m_, sr, si, jnp.zeros(()))[1])(c.solref, c.solimp)
-                b = jnp.concatenate([jnp.zeros(n0, b.dtype), jnp.repeat(b, 4)])
-                daref = td._impl.efc_aref - b * dj(d_.qvel)
-                djt_e = jax.jvp(lambda p: fm.rows_t_times(m, p, bodies, on, e[n0:]), (parts,), (tparts,))[1]
-            else:
-                daref, djt_e = td._impl.efc_aref, td._impl.efc_J.T @ e
-                dj = lambda x: td._impl.efc_J @ x  # noqa: E731
-            e1 = -(td._impl.efc_D * jaref + dd * (dj(a) - daref)) * active
-            q1 = djt_e + j.T @ e1
+            e1 = -(td._impl.efc_D * jaref + dd * (td._impl.efc_J @ a - td._impl.efc_aref)) * active
+            q1 = td._impl.efc_J.T @ e + j.T @ e1
             g1 = support.mul_m(m_, d_.tree_replace({"_impl.M": td._impl.M}), a) - td.qfrc_smooth
         else:
             def update(a_, xf_):
@@ -143,15 +125,19 @@ def _attach_forward(m, d, a_star, frc, efc, kept: bool = False, written: bool = 
 @contextlib.contextmanager
 def forward_rule(mode: str):
     """While open, a program traced takes the forward-mode rule of `mode` (jvp, jvp1, jvpk, jvpm) in place of the
-    reverse one (`hexjax.sim.implicit._attach`); jvpk and jvpm also run `_solve_keep` as the solver."""
-    kept, free = mode in ("jvpk", "jvpm", "jvpf"), mode == "jvpf"
+    reverse one (`hexjax.sim.implicit._attach`); jvpk and jvpm also run `_solve_keep` as the solver. jvpf: the
+    package's rule, `hexjax.sim.forward_mode.forward_solver`'s two swaps, with the implicit solve's place taken."""
+    kept = mode in ("jvpk", "jvpm")
     with contextlib.ExitStack() as stack:
+        if mode == "jvpf":
+            stack.enter_context(swapped(implicit, "implicit_solve", fm.forward_solve))
+            stack.enter_context(swapped(constraint, "_efc_contact_pyramidal", fm._pyramidal_no_tangent))
+            yield
+            return
         if kept:
             stack.enter_context(swapped(implicit, "_MJX_SOLVE", _solve_keep))
-        if free:
-            stack.enter_context(swapped(constraint, "_efc_contact_pyramidal", fm._pyramidal_no_tangent))
         stack.enter_context(swapped(implicit, "_attach", functools.partial(
-            _attach_forward, kept=kept, written=mode in ("jvpm", "jvpf"), free=free)))
+            _attach_forward, kept=kept, written=mode == "jvpm")))
         yield
 
 

@@ -165,11 +165,13 @@ def main():
     ap.add_argument("--solver-grad", default=None, help="override the config's solver_grad (unrolled|implicit)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="override a top-level config key (YAML value), e.g. distance=0.2")
-    ap.add_argument("--only", choices=("forward", "grad", "both", "jvp", "forward+jvp", "jvpm", "forward+jvpm"),
+    ap.add_argument("--only", choices=("forward", "grad", "both", "jvp", "forward+jvp", "jvpm", "forward+jvpm", "jvpf",
+                                       "forward+jvpf"),
                     default="both",
                     help="programs: both = forward and value_and_grad; jvp = the gradient in forward mode "
                          "(scripts/forward_grad_probe.py's program, its walk only: no --settle); jvpm = the same "
-                         "with the probe's jvpm rule (the solver's factor, the update's derivative written out)")
+                         "with the probe's jvpm rule (the solver's factor, the update's derivative written out); "
+                         "jvpf = the package's forward-mode rule (hexjax.sim.forward_mode)")
     ap.add_argument("--duration", type=float, default=None,
                     help="s walked, instead of the config's (a short one keeps the trace small)")
     ap.add_argument("--settle", type=float, default=None, help="s of settling, instead of RolloutConfig's")
@@ -189,9 +191,9 @@ def main():
                device=str(jax.devices()[0].device_kind), jax=jax.__version__, date=time.strftime("%Y-%m-%d"),
                programs=[])
     labels = {"both": ("forward", "value_and_grad"), "grad": ("value_and_grad",), "forward+jvp": ("forward", "jvp"),
-              "forward+jvpm": ("forward", "jvpm")}
+              "forward+jvpm": ("forward", "jvpm"), "forward+jvpf": ("forward", "jvpf")}
     for label in labels.get(a.only, (a.only,)):
-        if label in ("jvp", "jvpm"):
+        if label in ("jvp", "jvpm", "jvpf"):
             import forward_grad_probe as fgp  # the script beside this one
             with fgp.forward_rule(label):  # traced when `profile` lowers it
                 res["programs"].append(profile(fgp.jvp_program(prob, one=False, duration=a.duration), (u0, terr, keys),

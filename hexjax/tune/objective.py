@@ -213,7 +213,6 @@ class Problem:
 
         return f
 
-
     def forward_value_and_grad(self, duration: Optional[float] = None, settle_time: Optional[float] = None):
         """The same f(u, terrain, keys) as `value_and_grad`, its gradient taken in forward mode: `jax.jacfwd` of
         sum J over the batch, one tangent per unconstrained number side by side, through the gradient rollout
