@@ -138,12 +138,15 @@ class Problem:
                                 physics=self.physics(), config=rc, params_batched=params_batched)
 
     def _rollout_config(self, grad: bool, settle_time: Optional[float] = None) -> RolloutConfig:
-        """The training rollout's config; `grad` adds the truncation, bound and remat."""
+        """The training rollout's config; `grad` adds the truncation, bound and remat (no remat with `backward:
+        forward`, whose rollout carries its tangents forward: `RolloutConfig.grad_mode`)."""
         rc = RolloutConfig()
         if grad:
             window = max(1, int(round(self.cfg.window / self.train_ctrl.dt)))
-            rc = RolloutConfig(grad_clip=self.cfg.grad_clip, grad_window=window, remat=True,
-                               solver_grad=self.cfg.solver_grad, unroll_substeps=self.cfg.unroll_substeps)
+            forward = self.cfg.backward == "forward"
+            rc = RolloutConfig(grad_clip=self.cfg.grad_clip, grad_window=window, remat=not forward,
+                               solver_grad=self.cfg.solver_grad, unroll_substeps=self.cfg.unroll_substeps,
+                               grad_mode="forward" if forward else "reverse")
         return rc if settle_time is None else dataclasses.replace(rc, settle_time=settle_time)
 
     def hard_rollout(self, params_batched: bool = False):
@@ -219,9 +222,7 @@ class Problem:
         without remat and with forward mode's rule for MJX's solve (`RolloutConfig.grad_mode='forward'`,
         `hexjax.sim.forward_mode`). The windows cut the tangents at their starts, so it is the windowed gradient
         of reverse mode without a bound (the config's grad_clip must be null)."""
-        rc = dataclasses.replace(self._rollout_config(True, settle_time), remat=False, grad_mode="forward")
-        walk = self.duration if duration is None else duration
-        model, fn = rollout_function(self.robot, self.train_ctrl, walk, physics=self.physics(), config=rc)
+        model, fn = self.train_rollout(grad=True, duration=duration, settle_time=settle_time)
         loss = self.loss_fn(fn, model)
 
         def f(u, terrain, keys):
