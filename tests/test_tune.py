@@ -194,6 +194,24 @@ def test_tuning_is_deterministic_and_resumes(tmp_path):
     assert e["log"][3]["params"] != d["log"][3]["params"]  # the average is not the last iterate
 
 
+def test_a_non_finite_step_is_named_with_its_count_and_the_bound():
+    """The gradient tuner skips a step whose gradient or objective is not finite and prints why: the number of
+    bad entries over the whole pytree, and the config's bound on the backward flow (none in forward mode or with
+    grad_clip null, where an exploding gradient is expected: docs/tuning.md, "Non-finite steps")."""
+    from hexjax.tune.driver import nonfinite_note
+    g = {"a": jnp.array([1.0, jnp.nan, 2.0]), "b": jnp.array([[jnp.inf, 0.5], [0.0, -jnp.inf]])}
+    base = _small_config()
+    assert nonfinite_note(3, 0.2, {"a": jnp.ones(3)}, base) is None
+    note = nonfinite_note(3, 0.2, g, base)
+    assert note.startswith("step 4: 3 of 7 gradient entries are not finite; the step is skipped") and \
+        f"grad_clip={base.grad_clip:g} per env" in note and "\n" not in note, note
+    assert "objective is nan" in nonfinite_note(0, float("nan"), {"a": jnp.ones(3)}, base)
+    assert "grad_clip: null leaves the backward flow unbounded" in nonfinite_note(
+        0, 0.2, g, dataclasses.replace(base, grad_clip=None))
+    fwd = dataclasses.replace(base, grad_clip=None, backward="forward", solver_grad="implicit")
+    assert "backward: forward has no bound" in nonfinite_note(0, 0.2, g, fwd)
+
+
 def test_cli_tune_rejects_bad_configs(capsys):
     from hexjax.cli import main
     for sets, msg in ((["optimizer.learning_rate=0"], "learning_rate=0"),

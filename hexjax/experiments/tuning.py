@@ -41,6 +41,7 @@ def _row(r) -> Dict:
             "held_out_last": r["last"]["held_out"],
             "improvement_pct": r["improvement_pct"], "params_start": r["start"]["params"],
             "params_final": r["final"]["params"],
+            "skipped_steps": sum(1 for e in r["log"] if e.get("grad_finite") is False),
             "curve": [(e["rollouts"], e["held_out"]["objective"]) for e in r["log"] if "held_out" in e]}
 
 
@@ -83,6 +84,9 @@ def report(res: Dict) -> str:
                      f"({-pct:+.1f} %, {verdict}), goal error {s['goal_error_cm']:.1f} -> {f['goal_error_cm']:.1f} cm (iterate "
                      f"{r['selected_step']}, {r['selected_by']}), {r['rollouts']} rollouts, {r['train_s']:.0f} s "
                      f"({r['wall_s']:.0f} s with evaluations)")
+        if r.get("skipped_steps"):
+            lines.append(f"  {r['skipped_steps']} step(s) skipped for a non-finite gradient (docs/tuning.md, "
+                         f"\"Non-finite steps\")")
         for k, v in r["params_final"].items():
             lines.append(f"  {k}: {r['params_start'][k]} -> {v}")
     lines.append(f"logs, checkpoints and plots under {res['out']}/")

@@ -22,9 +22,22 @@ from hexjax.tune.config import TuneConfig
 from hexjax.tune.objective import Problem, evaluate_held_out
 
 
-def all_finite(tree) -> bool:
-    """Every leaf of the pytree is finite."""
-    return all(bool(jnp.all(jnp.isfinite(x))) for x in jax.tree_util.tree_leaves(tree))
+def nonfinite_note(step: int, loss, grad, cfg: TuneConfig) -> Optional[str]:
+    """None where the step's objective and every gradient entry are finite; else the line the tuner prints as it
+    skips the step: how many entries are not finite, and what bounds the backward flow in this config (an
+    unbounded windowed gradient can explode: docs/tuning.md, "Non-finite steps")."""
+    flat = np.concatenate([np.ravel(np.asarray(x)) for x in jax.tree_util.tree_leaves(grad)] or [np.zeros(0)])
+    bad = int(np.size(flat) - np.count_nonzero(np.isfinite(flat)))
+    if bad == 0 and math.isfinite(float(loss)):
+        return None
+    what = f"{bad} of {flat.size} gradient entries are not finite" if bad else f"the objective is {float(loss)}"
+    if cfg.backward == "forward":
+        hint = "backward: forward has no bound on the gradient's flow; a reverse backward with grad_clip has one"
+    elif cfg.grad_clip is None:
+        hint = "grad_clip: null leaves the backward flow unbounded; set grad_clip (per env, e.g. 1 or 10)"
+    else:
+        hint = f"the flow is bounded at grad_clip={cfg.grad_clip:g} per env"
+    return f"step {step + 1}: {what}; the step is skipped ({hint})"
 
 
 def _flat(tree):

@@ -4,15 +4,15 @@ rules as the start (docs/tuning.md, "Why truncated windows")."""
 
 from __future__ import annotations
 
-import math
 import time
 from typing import Any, Dict, Optional
 
 import jax
 import optax
+from tqdm.auto import tqdm
 
 from hexjax.tune.config import TuneConfig
-from hexjax.tune.driver import all_finite, cached, config_digest, drive, program_digest
+from hexjax.tune.driver import cached, config_digest, drive, nonfinite_note, program_digest
 from hexjax.tune.hybrid import hybrid_value_and_grad
 from hexjax.tune.objective import Problem
 
@@ -73,7 +73,10 @@ def tune(cfg: TuneConfig, out_dir: str, resume: bool = True, progress: bool = Tr
         terr, keys = problem.train_batch(step)
         key = None if zo_key is None else jax.random.fold_in(zo_key, step)
         (loss, _), g = vg(u, terr, keys, key)
-        ok = all_finite(g) and math.isfinite(float(loss))
+        note = nonfinite_note(step, loss, g, cfg)
+        ok = note is None
+        if note:
+            tqdm.write(note)
         if ok:
             upd, opt_state = opt.update(g, opt_state, u)
             u = optax.apply_updates(u, upd)
