@@ -14,14 +14,26 @@ from hexjax.world.files import is_path, preset_names
 
 
 def _value_parser(opt: Option):
-    """The argparse `type` of an option: one value of its type, or a comma list for a list default (each item
+    """The argparse `type` of an option: one value of its type within its bounds (so that an out-of-range number
+    fails as the arguments parse, before JAX is imported), or a comma list of them for a list default (each item
     one of `choices`, where given)."""
-    one = opt.value_type
+    def one(s):
+        v = opt.value_type(s)  # a ValueError here: argparse's "invalid int value: 'x'"
+        try:
+            return opt.check_value(v)
+        except ValueError as err:
+            raise argparse.ArgumentTypeError(str(err)) from None
+    one.__name__ = opt.value_type.__name__
     if not isinstance(opt.default, list) or opt.repeat:
         return one
 
     def items(s):
-        vals = [one(x.strip()) for x in s.split(",") if x.strip()]
+        vals = []
+        for x in filter(None, (x.strip() for x in s.split(","))):
+            try:
+                vals.append(one(x))
+            except ValueError:
+                raise argparse.ArgumentTypeError(f"{x!r} in {s!r}: not a value of type {one.__name__}") from None
         bad = [v for v in vals if opt.choices and v not in opt.choices]
         if bad:
             raise argparse.ArgumentTypeError(f"{bad[0]!r} is not one of {', '.join(map(str, opt.choices))}")
@@ -36,6 +48,8 @@ def _help(opt: Option) -> str:
         text += f" (presets: {', '.join(preset_names(opt.preset))}; or a .yaml path)"
     if opt.choices:
         text += f" (one of: {', '.join(map(str, opt.choices))})"
+    if opt.bounds_text():
+        text += f" ({opt.bounds_text()})"
     d = ",".join(map(str, opt.default)) if isinstance(opt.default, list) else opt.default
     return f"{text} [default: {d if d not in ('', None) else 'none'}]".strip()
 

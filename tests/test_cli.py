@@ -30,16 +30,27 @@ def test_evaluate_obstacles_lose_distance(tmp_path, capsys):
 
 
 def test_help_and_errors_import_no_jax():
-    """`hexjax --help`, an experiment's `--help`, `--list` and a bad flag answer before JAX is imported (so in
-    well under a second)."""
+    """`hexjax --help`, an experiment's `--help`, `--list`, a bad flag, numbers out of their range (the
+    registry's bounds) and a bad sweep axis answer before JAX is imported (so in well under a second); a bad
+    tuning key answers before MuJoCo and the tuners are imported (about a second)."""
     code = ("import sys\nfrom hexjax.cli import main\n"
-            "for argv in (['--help'], ['experiment', 'zhao2018-mjx', '--help'], ['evaluate', '--gait', 'gallop']):\n"
+            "for argv in (['--help'], ['experiment', 'zhao2018-mjx', '--help'], ['evaluate', '--gait', 'gallop'],\n"
+            "             ['evaluate', '--batch', '-3'], ['experiment', 'yu2019-step', '--duration', 'nan'],\n"
+            "             ['bench', '--batches', '16,0'], ['terrain', '--difficulty', '0.5,1.5']):\n"
             "    try:\n        main(argv)\n    except SystemExit:\n        pass\n"
             "main(['experiment', '--list'])\n"
-            "assert 'jax' not in sys.modules, 'jax was imported'\nprint('NO-JAX')")
+            "assert main(['robustness', '--axis', 'friction=1:0:3']) == 2\n"
+            "assert 'jax' not in sys.modules, 'jax was imported'\n"
+            "assert main(['tune', '--set', 'stpes=5']) == 2\n"  # the config's check needs JAX, not the tuners
+            "assert 'mujoco' not in sys.modules and 'hexjax.tune.grad' not in sys.modules\nprint('NO-JAX')")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert r.returncode == 0 and "NO-JAX" in r.stdout, r.stderr[-2000:]
     assert "invalid choice: 'gallop'" in r.stderr
+    assert "argument --batch: -3: must be >= 1" in r.stderr
+    assert "argument --duration: nan: must be a finite number" in r.stderr
+    assert "argument --batches: 0: must be >= 1" in r.stderr
+    assert "argument --difficulty: 1.5: must be in [0, 1]" in r.stderr
+    assert "--axis 'friction=1:0:3': values must be" in r.stderr and "tune.stpes: unknown key" in r.stderr
 
 
 def test_experiment_list_and_per_experiment_flags(capsys):
@@ -70,22 +81,59 @@ def test_experiment_list_and_per_experiment_flags(capsys):
 def test_cli_reports_bad_input_before_any_work(capsys, tmp_path):
     assert main(["terrain", "--preset", "volcano", "--png", str(tmp_path / "x.png")]) == 2
     assert "volcano" in capsys.readouterr().err
-    assert main(["evaluate", "--batch", "0"]) == 2
     assert main(["render", "--out", str(tmp_path / "w.txt")]) == 2  # checked before ~100 s of simulation
     assert "--out=" in capsys.readouterr().err
     assert main(["experiment", "zhao2018", "--png", str(tmp_path / "plot.jpg")]) == 2
     assert "must end in .png" in capsys.readouterr().err
-    assert main(["experiment", "luneckas2020", "--n", "0"]) == 2
-    assert "n=0" in capsys.readouterr().err
+    # numbers out of their registry bounds fail as the arguments parse (argparse's exit 2), naming flag and value
+    for argv, said in ((["evaluate", "--batch", "0"], "--batch: 0: must be >= 1"),
+                       (["experiment", "luneckas2020", "--n", "0"], "--n: 0: must be >= 1"),
+                       (["experiment", "luneckas2020", "--distances", "1,-1"], "--distances: -1: must be in (0, 10]"),
+                       (["experiment", "luneckas2020-predictor", "--lr", "0"], "--lr: 0: must be > 0"),
+                       (["experiment", "luneckas2020-predictor", "--held-out", "1.0"],
+                        "--held-out: 1: must be in (0, 1)"),
+                       (["bench", "--seconds", "inf"], "--seconds: inf: must be a finite number"),
+                       (["bench", "--batches", "16,x"], "'x' in '16,x': not a value of type int")):
+        with pytest.raises(SystemExit) as ex:
+            main(argv)
+        assert ex.value.code == 2 and said in capsys.readouterr().err, argv
     with pytest.raises(SystemExit):
         main(["experiment", "luneckas2020", "--gaits", "trot"])
     assert "'trot' is not one of" in capsys.readouterr().err
-    assert main(["experiment", "luneckas2020", "--distances", "-1"]) == 2
-    assert "distances" in capsys.readouterr().err
     assert main(["experiment", "luneckas2020-predictor", "--data", str(tmp_path / "none.npz")]) == 2
     assert "luneckas2020-dataset" in capsys.readouterr().err
-    assert main(["experiment", "luneckas2020-predictor", "--lr", "0", "--data", str(tmp_path / "none.npz")]) == 2
-    assert "learning_rate" in capsys.readouterr().err
+
+
+def test_the_library_checks_what_the_cli_bounds_check():
+    """The registry's bounds only answer sooner: a Python caller of the same functions gets the library's own
+    one-line error for the same values."""
+    from hexjax.experiments.evaluate import evaluate
+    from hexjax.experiments.luneckas2020.matrix import run_luneckas2020
+    from hexjax.experiments.luneckas2020.predictor import TrainConfig
+    for call, said in ((lambda: evaluate(batch=0), "batch=0"),
+                       (lambda: evaluate(distance=float("nan")), "distance=nan"),
+                       (lambda: run_luneckas2020(n=0), "n=0"),
+                       (lambda: run_luneckas2020(distances=[1.0, -1.0]), "distances="),
+                       (lambda: TrainConfig(learning_rate=0.0).validate(), "learning_rate=0.0")):
+        with pytest.raises(ValueError, match=said):
+            call()
+
+
+def test_registry_bounds_are_checked_on_load(tmp_path):
+    """A bound on a text option, a bound that is not a number, min with above, or a default outside its own
+    bounds fails on load, naming the file and the option."""
+    from hexjax.experiments.registry import load_entry
+    head = "summary: s\nentry: hexjax.experiments.evaluate\noptions:\n"
+    for opt, said in (("  name: {default: a, min: 1}", "need a number option"),
+                      ("  n: {default: 2, min: one}", "n.min='one': a bound must be a finite number"),
+                      ("  n: {default: 2, min: 1, above: 0}", "give min or above"),
+                      ("  n: {default: 0, min: 1}", "n.default=0 is outside its own bounds"),
+                      ("  d: {default: [0.5, 2.0], max: 1}", "d.default=2.0 is outside")):
+        f = tmp_path / "bad.yaml"
+        f.write_text(head + opt + "\n")
+        with pytest.raises(ValueError, match=said) as ex:
+            load_entry(f, "commands")
+        assert str(f) in str(ex.value)
 
 
 def test_terrain_png_shows_the_obstacles(tmp_path):

@@ -9,8 +9,9 @@ A file holds:
              where it draws, plot(result, png_path) -> [written paths]
     options: the command-line flags, each {default, help} and optionally choices, a preset kind (robots,
              terrains, tune, sensors: a preset name or a .yaml path), the suffixes of an output file, or `repeat` (the
-             flag may be given several times); the type is the default's or `type`'s (a list default takes a
-             comma list; a false default is a switch)
+             flag may be given several times), and for a number the bounds `min`, `max` (inclusive), `above`,
+             `below` (exclusive), checked as the arguments parse; the type is the default's or `type`'s (a list
+             default takes a comma list, each item checked; a false default is a switch)
     preset:  the experiment's fixed numbers (terrains, variants, durations): a copy with other numbers is a
              new experiment, `hexjax experiment path/to/my.yaml`
 """
@@ -18,12 +19,14 @@ A file holds:
 from __future__ import annotations
 
 import dataclasses
+import math
 from pathlib import Path
 from typing import Any, Dict, Optional, Tuple
 
 from hexjax.world.files import preset_names, read_yaml, resolve
 
-OPTION_KEYS = {"default", "help", "choices", "preset", "output", "type", "repeat"}
+BOUND_KEYS = ("min", "max", "above", "below")
+OPTION_KEYS = {"default", "help", "choices", "preset", "output", "type", "repeat", *BOUND_KEYS}
 TYPES = {"int": int, "float": float, "str": str}
 
 
@@ -40,6 +43,10 @@ class Option:
     output: Optional[Tuple[str, ...]] = None
     type: Optional[str] = None
     repeat: bool = False
+    min: Optional[float] = None
+    max: Optional[float] = None
+    above: Optional[float] = None
+    below: Optional[float] = None
 
     @property
     def flag(self) -> str:
@@ -52,6 +59,37 @@ class Option:
             return TYPES[self.type]
         d = self.default[0] if isinstance(self.default, list) and self.default else self.default
         return type(d) if isinstance(d, (int, float, str)) and not isinstance(d, bool) else str
+
+    def bounds_text(self) -> str:
+        """The option's range in words ('>= 1', '> 0', 'in (0, 20]'), or '' when it has none."""
+        lo = (f"[{_num(self.min)}" if self.min is not None else f"({_num(self.above)}"
+              if self.above is not None else None)
+        hi = (f"{_num(self.max)}]" if self.max is not None else f"{_num(self.below)})"
+              if self.below is not None else None)
+        if lo and hi:
+            return f"in {lo}, {hi}"
+        if lo:
+            return (">= " if lo[0] == "[" else "> ") + lo[1:]
+        if hi:
+            return ("<= " if hi[-1] == "]" else "< ") + hi[:-1]
+        return ""
+
+    def check_value(self, v):
+        """`v` (one parsed value of a number option), or one ValueError line saying why not: a float must be
+        finite, and every value must lie within the option's bounds."""
+        if isinstance(v, float) and not math.isfinite(v):
+            raise ValueError(f"{v}: must be a finite number")
+        if isinstance(v, (int, float)):
+            low_bad = (self.min is not None and v < self.min) or (self.above is not None and v <= self.above)
+            high_bad = (self.max is not None and v > self.max) or (self.below is not None and v >= self.below)
+            if low_bad or high_bad:
+                raise ValueError(f"{_num(v)}: must be {self.bounds_text()}")
+        return v
+
+
+def _num(x) -> str:
+    """A bound or value as written: 1 rather than 1.0."""
+    return str(int(x)) if isinstance(x, float) and x.is_integer() and abs(x) < 1e15 else str(x)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -84,9 +122,27 @@ def _option(source: str, name: str, spec) -> Option:
     if pk is not None and pk not in ("robots", "terrains", "tune", "sensors"):
         raise ValueError(f"{source}: options.{name}.preset={pk!r}: use robots, terrains, tune or sensors")
     out = spec.get("output")
-    return Option(name=name, default=spec["default"], help=str(spec.get("help", "")),
-                  choices=tuple(spec["choices"]) if spec.get("choices") is not None else None, preset=pk,
-                  output=tuple(out) if out else None, type=spec.get("type"), repeat=bool(spec.get("repeat", False)))
+    bounds = {k: spec[k] for k in BOUND_KEYS if spec.get(k) is not None}
+    for k, b in bounds.items():
+        if isinstance(b, bool) or not isinstance(b, (int, float)) or not math.isfinite(b):
+            raise ValueError(f"{source}: options.{name}.{k}={b!r}: a bound must be a finite number")
+    opt = Option(name=name, default=spec["default"], help=str(spec.get("help", "")),
+                 choices=tuple(spec["choices"]) if spec.get("choices") is not None else None, preset=pk,
+                 output=tuple(out) if out else None, type=spec.get("type"), repeat=bool(spec.get("repeat", False)),
+                 **bounds)
+    if bounds and opt.value_type not in (int, float):
+        raise ValueError(f"{source}: options.{name}: bounds {sorted(bounds)} need a number option (its default or "
+                         "`type` int or float)")
+    if ("min" in bounds and "above" in bounds) or ("max" in bounds and "below" in bounds):
+        raise ValueError(f"{source}: options.{name}: give min or above, and max or below, not both")
+    defaults = opt.default if isinstance(opt.default, list) else [opt.default]
+    for d in defaults:
+        if d is not None:
+            try:
+                opt.check_value(d)
+            except ValueError as err:
+                raise ValueError(f"{source}: options.{name}.default={d!r} is outside its own bounds ({err})") from None
+    return opt
 
 
 def load_entry(path: Path, kind: str) -> Entry:

@@ -176,7 +176,18 @@ def _avoid_params(ctrl, terr, kind: str, distance: float):
 
 
 def sweep(o) -> Dict:
-    """The sweep of parsed options `o` (configs/commands/robustness.yaml)."""
+    """The sweep of parsed options `o` (configs/commands/robustness.yaml). The options that need no JAX are
+    checked before it is imported, so a bad --axis answers at once."""
+    axes = [parse_axis(a) for a in o.axis]
+    if not 1 <= len(axes) <= 2:
+        raise ValueError(f"--axis given {len(axes)} times: sweep one or two axes")
+    if len(axes) == 2 and axes[0][0] == axes[1][0]:
+        raise ValueError(f"--axis {axes[0][0]} given twice")
+    if not (isinstance(o.batch, int) and o.batch >= 1):
+        raise ValueError(f"--batch={o.batch!r}: must be a whole number >= 1")
+    if not (0 < o.distance <= 5):
+        raise ValueError(f"--distance={o.distance!r}: must be in (0, 5] m")
+
     import jax
     from tqdm.auto import tqdm
 
@@ -190,17 +201,8 @@ def sweep(o) -> Dict:
     from hexjax.world.randomization import randomization_from_dict, sample_perturbation
     from hexjax.world.terrain import leg_scale, pad_terrain, sample
 
-    axes = [parse_axis(a) for a in o.axis]
-    if not 1 <= len(axes) <= 2:
-        raise ValueError(f"--axis given {len(axes)} times: sweep one or two axes")
-    if len(axes) == 2 and axes[0][0] == axes[1][0]:
-        raise ValueError(f"--axis {axes[0][0]} given twice")
-    if not (isinstance(o.batch, int) and o.batch >= 1):
-        raise ValueError(f"--batch={o.batch!r}: must be a whole number >= 1")
     if o.backend != "mjx" and jax.process_count() > 1:
         raise ValueError(f"--backend={o.backend}: several processes need --backend mjx")
-    if not (0 < o.distance <= 5):
-        raise ValueError(f"--distance={o.distance!r}: must be in (0, 5] m")
     robot = get_robot(o.robot)
     ctrls = _controllers(o.controllers, robot)
     raw = read_yaml(o.randomization) if o.randomization else None

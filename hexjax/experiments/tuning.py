@@ -9,9 +9,6 @@ import time
 from typing import Dict, List
 
 from hexjax.tune.config import load_tune_config
-from hexjax.tune.driver import compare_plot
-from hexjax.tune.es import tune_es
-from hexjax.tune.grad import tune
 from hexjax.world.files import resolve
 
 
@@ -47,6 +44,11 @@ def _row(r) -> Dict:
 
 def run(o, entry) -> Dict:
     cfg = load_tune_config(o.config, parse_sets(o.set), merge=True)
+    # the tuners (MJX, the rollout) load only once the config has passed its checks: a bad --set answers in
+    # about a second
+    from hexjax.tune.driver import compare_plot
+    from hexjax.tune.es import tune_es
+    from hexjax.tune.grad import tune
     out = o.out or os.path.join("out", "tune", resolve("tune", o.config).stem)
     limit = None if o.minutes is None else 60 * o.minutes
     print(f"tune {o.config} ({o.method}): {cfg.steps} steps of {cfg.train_batch} terrains ({cfg.distance:g} m "
