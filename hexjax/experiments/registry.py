@@ -62,16 +62,17 @@ class Option:
 
     def bounds_text(self) -> str:
         """The option's range in words ('>= 1', '> 0', 'in (0, 20]'), or '' when it has none."""
-        lo = (f"[{_num(self.min)}" if self.min is not None else f"({_num(self.above)}"
-              if self.above is not None else None)
-        hi = (f"{_num(self.max)}]" if self.max is not None else f"{_num(self.below)})"
-              if self.below is not None else None)
+        lo = hi = None  # (bound, inclusive)
+        if self.min is not None or self.above is not None:
+            lo = (self.min, True) if self.min is not None else (self.above, False)
+        if self.max is not None or self.below is not None:
+            hi = (self.max, True) if self.max is not None else (self.below, False)
         if lo and hi:
-            return f"in {lo}, {hi}"
+            return f"in {'[' if lo[1] else '('}{_num(lo[0])}, {_num(hi[0])}{']' if hi[1] else ')'}"
         if lo:
-            return (">= " if lo[0] == "[" else "> ") + lo[1:]
+            return f"{'>=' if lo[1] else '>'} {_num(lo[0])}"
         if hi:
-            return ("<= " if hi[-1] == "]" else "< ") + hi[:-1]
+            return f"{'<=' if hi[1] else '<'} {_num(hi[0])}"
         return ""
 
     def check_value(self, v):
