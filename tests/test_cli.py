@@ -31,8 +31,8 @@ def test_evaluate_obstacles_lose_distance(tmp_path, capsys):
 
 def test_help_and_errors_import_no_jax():
     """`hexjax --help`, an experiment's `--help`, `--list`, a bad flag, numbers out of their range (the
-    registry's bounds) and a bad sweep axis answer before JAX is imported (so in well under a second); a bad
-    tuning key answers before MuJoCo and the tuners are imported (about a second)."""
+    registry's bounds), a bad sweep axis and a missing randomization file answer before JAX is imported (so in
+    well under a second); a bad tuning key answers before MuJoCo and the tuners are imported (about a second)."""
     code = ("import sys\nfrom hexjax.cli import main\n"
             "for argv in (['--help'], ['experiment', 'zhao2018-mjx', '--help'], ['evaluate', '--gait', 'gallop'],\n"
             "             ['evaluate', '--batch', '-3'], ['experiment', 'yu2019-step', '--duration', 'nan'],\n"
@@ -40,6 +40,7 @@ def test_help_and_errors_import_no_jax():
             "    try:\n        main(argv)\n    except SystemExit:\n        pass\n"
             "main(['experiment', '--list'])\n"
             "assert main(['robustness', '--axis', 'friction=1:0:3']) == 2\n"
+            "assert main(['robustness', '--axis', 'friction=0.5,1', '--randomization', 'no/such.yaml']) == 2\n"
             "assert 'jax' not in sys.modules, 'jax was imported'\n"
             "assert main(['tune', '--set', 'stpes=5']) == 2\n"  # the config's check needs JAX, not the tuners
             "assert 'mujoco' not in sys.modules and 'hexjax.tune.grad' not in sys.modules\nprint('NO-JAX')")
@@ -51,6 +52,7 @@ def test_help_and_errors_import_no_jax():
     assert "argument --batches: 0: must be >= 1" in r.stderr
     assert "argument --difficulty: 1.5: must be in [0, 1]" in r.stderr
     assert "--axis 'friction=1:0:3': values must be" in r.stderr and "tune.stpes: unknown key" in r.stderr
+    assert "no/such.yaml: no such file" in r.stderr
 
 
 def test_experiment_list_and_per_experiment_flags(capsys):

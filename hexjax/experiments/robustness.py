@@ -22,7 +22,9 @@ from typing import Dict, List, Sequence, Tuple
 import numpy as np
 
 from hexjax import cache
+from hexjax.world.files import read_yaml
 from hexjax.world.randomization import AXES as RANDOM_AXES
+from hexjax.world.randomization import randomization_from_dict
 
 # terrain axes: the sweep value v sets the obstacle terrain spec's range to [v, v]; `difficulty` sets any
 # family's difficulty in [0, 1] (`TerrainSpec.at_difficulty`, its lengths scaled to the robot's leg)
@@ -187,6 +189,10 @@ def sweep(o) -> Dict:
         raise ValueError(f"--batch={o.batch!r}: must be a whole number >= 1")
     if not (0 < o.distance <= 5):
         raise ValueError(f"--distance={o.distance!r}: must be in (0, 5] m")
+    raw = read_yaml(o.randomization) if o.randomization else None
+    if raw is not None and "randomization" in raw:  # a file with a randomization: block, or the block alone
+        raw = raw["randomization"]
+    base_rand = randomization_from_dict(raw, source=o.randomization or "randomization")
 
     import jax
     from tqdm.auto import tqdm
@@ -196,19 +202,14 @@ def sweep(o) -> Dict:
     from hexjax.sim.config import PhysicsConfig, RolloutConfig, physics_for
     from hexjax.sim.rollout import make_mesh, rollout
     from hexjax.tune.space import with_values
-    from hexjax.world.files import read_yaml
     from hexjax.world.presets import get_robot, get_terrain
-    from hexjax.world.randomization import randomization_from_dict, sample_perturbation
+    from hexjax.world.randomization import sample_perturbation
     from hexjax.world.terrain import leg_scale, pad_terrain, sample
 
     if o.backend != "mjx" and jax.process_count() > 1:
         raise ValueError(f"--backend={o.backend}: several processes need --backend mjx")
     robot = get_robot(o.robot)
     ctrls = _controllers(o.controllers, robot)
-    raw = read_yaml(o.randomization) if o.randomization else None
-    if raw is not None and "randomization" in raw:  # a file with a randomization: block, or the block alone
-        raw = raw["randomization"]
-    base_rand = randomization_from_dict(raw, source=o.randomization or "randomization")
     base_terrain = get_terrain(o.terrain, length=o.distance + 0.3)
     for name, _ in axes:
         if name in TERRAIN_AXES and name != "difficulty" and base_terrain.kind != "obstacles":
