@@ -26,8 +26,8 @@ def nonfinite_note(step: int, loss, grad, cfg: TuneConfig) -> Optional[str]:
     """None where the step's objective and every gradient entry are finite; else the line the tuner prints as it
     skips the step: how many entries are not finite, and what bounds the backward flow in this config (an
     unbounded windowed gradient can explode: docs/tuning.md, "Non-finite steps")."""
-    flat = np.concatenate([np.ravel(np.asarray(x)) for x in jax.tree_util.tree_leaves(grad)] or [np.zeros(0)])
-    bad = int(np.size(flat) - np.count_nonzero(np.isfinite(flat)))
+    flat = np.concatenate([np.ravel(x) for x in _flat(grad)] or [np.zeros(0)])
+    bad = int(np.count_nonzero(~np.isfinite(flat)))
     if bad == 0 and math.isfinite(float(loss)):
         return None
     what = f"{bad} of {flat.size} gradient entries are not finite" if bad else f"the objective is {float(loss)}"
