@@ -165,9 +165,10 @@ class Compiled:
     def _export(self, path: Path, args, leaves, in_tree):
         """Export the function over flat arguments, keep it at `path`, and return its executable (None when it
         does not export)."""
-        # a rollout over several devices exports, but with jax 0.11.2 calling it back fails MLIR's verifier (a
-        # `Sharding` custom call whose Shardy attribute has the wrong form; docs/benchmarks.md 2026-11-28, third
-        # session), so it is traced afresh in every process
+        # a rollout over several devices is partitioned with GSPMD (`hexjax.sim.rollout.gspmd`: Shardy crashes on
+        # it), and jax 0.11.2 cannot call an export back under GSPMD: MLIR's verifier refuses the Shardy attribute
+        # that the call's lowering puts on a `Sharding` custom call (docs/benchmarks.md 2026-11-28, third session).
+        # So such a program is traced afresh in every process
         if any(len(getattr(x, "sharding", None).device_set) > 1 for x in leaves if hasattr(x, "sharding")):
             return None
         out = {}
