@@ -169,7 +169,7 @@ class Compiled:
         # it), and jax 0.11.2 cannot call an export back under GSPMD: MLIR's verifier refuses the Shardy attribute
         # that the call's lowering puts on a `Sharding` custom call (docs/benchmarks.md 2026-11-28, third session).
         # So such a program is traced afresh in every process
-        if any(len(getattr(x, "sharding", None).device_set) > 1 for x in leaves if hasattr(x, "sharding")):
+        if any(len(x.sharding.device_set) > 1 for x in leaves if hasattr(x, "sharding")):
             return None
         out = {}
 
