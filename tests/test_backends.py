@@ -68,8 +68,25 @@ def test_warp_backend_walks_like_mjx(mjx_run):
         import warp  # noqa: F401
     else:
         pytest.importorskip("warp")
-    out = rollout(ROBOT, TERRAIN, CTRL, CTRL.default_params(), SECONDS, jax.random.PRNGKey(1), backend="warp")
+    from hexjax.sim.backends import warp_cpu
+    recorded, replayed = warp_cpu.STATS["recorded"], warp_cpu.STATS["replayed"]
+    walk = lambda: rollout(ROBOT, TERRAIN, CTRL, CTRL.default_params(), SECONDS, jax.random.PRNGKey(1), backend="warp")
+    out = walk()
     _agree(mjx_run, out)
+    if jax.default_backend() == "cpu":
+        # Warp's step was recorded a few times (once per set of buffers) and replayed at every other physics
+        # step of the walk (15 settling and 250 control steps of 4 physics steps; one call for all 6 envs) ...
+        new, again = warp_cpu.STATS["recorded"] - recorded, warp_cpu.STATS["replayed"] - replayed
+        assert 0 < new <= 8 and again >= (15 + 250) * 4 - new, (new, again)
+        # ... which changes the speed only: with Warp's Python run at every call the walk is the same bit for bit
+        was, counts = warp_cpu.set_enabled(False), dict(warp_cpu.STATS)
+        try:  # the switch is read when the call runs, so wait for the walk (XLA dispatches it asynchronously)
+            plain = jax.block_until_ready(walk())
+        finally:
+            warp_cpu.set_enabled(was)
+        assert dict(warp_cpu.STATS) == counts, "nothing recorded or replayed while the replay was off"
+        for x, y in zip(jax.tree_util.tree_leaves(out), jax.tree_util.tree_leaves(plain)):
+            np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
 
 
 def test_contact_sensors_read_the_forces_mujoco_reports():

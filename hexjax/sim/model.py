@@ -76,6 +76,8 @@ class SimModel:
             from mujoco.mjx import warp as mjx_warp
             if not mjx_warp.WARP_INSTALLED:
                 raise RuntimeError("impl='warp' needs the warp-lang package: pip install 'hexjax[warp]'")
+            from hexjax.sim.backends import warp_cpu
+            warp_cpu.enable()  # on a CPU, Warp's calls are recorded once and replayed (backends/warp_cpu.py)
             self.mjx_model = mjx.put_model(self.mj_model, impl="warp")
             # hexjax runs a fixed, small number of Newton iterations on purpose (PhysicsConfig): keep Warp's
             # overflow messages for contacts and rows, drop the one for the iteration limit
