@@ -9,11 +9,12 @@ machine: 9.2 ms for one world, of which the kernels take 0.9 ms), so a CPU walk 
 
 Warp 1.18 can record CPU graphs as well (`wp.ScopedCapture` on the CPU device, replayed in C++ by
 `wp.capture_launch`); its JAX bridge just does not use them. `enable()` makes the bridge do on the CPU what it
-does on CUDA: the first call with a given set of buffer addresses is recorded and replayed, later calls with the
-same addresses are replayed. A physics step inside a rollout's scan sees the same addresses at every step, so a
-walk records two graphs per Warp function and replays them. The replay launches the same kernels with the same
-arguments, so the results are the same bit for bit (`tests/test_backends.py` checks it); a 6 s walk of 8 envs
-took 8.9 s instead of 27.9 s.
+does on CUDA: the first call with a given set of buffers (addresses and leading sizes) is recorded and replayed,
+later calls with the same buffers are replayed. A physics step inside a rollout's scan sees the same buffers at
+every step, so a walk records two graphs per Warp function and replays them. The replay launches the same kernels
+with the same arguments, so the results are the same bit for bit (`tests/test_backends.py` checks it). A 6 s walk
+of 8 envs took 8.8 s instead of 27.9 s; `hexjax bench --backend warp` ran 13x faster at B = 1, 7.4x at B = 8
+and 1.2x at B = 256 (docs/benchmarks.md, "2026-11-28 (fifth session)").
 
 This reaches into Warp's private JAX bridge (`warp._src.jax.ffi.FfiCallable`), so it is applied only to the
 Warp version it was written against (`KNOWN_VERSIONS`, the one hexjax's `warp` extra pins); on any other version
@@ -34,6 +35,10 @@ def set_enabled(on: bool) -> bool:
     and XLA runs a rollout asynchronously: wait for a rollout (`jax.block_until_ready`) before switching back."""
     before, _state["on"] = _state["on"], bool(on)
     return before
+
+
+def _address_and_size(buffer):
+    return buffer.data, buffer.dims[0] if buffer.rank else 0
 
 
 def enable() -> bool:
@@ -61,8 +66,10 @@ def enable() -> bool:
                 attr = ctypes.cast(frame.attrs.attrs[0], ctypes.POINTER(wffi.XLA_FFI_Scalar)).contents
                 call_id = ctypes.cast(attr.value, ctypes.POINTER(ctypes.c_int64)).contents.value
                 ins, outs = ctypes.cast(frame.args.args, buffers), ctypes.cast(frame.rets.rets, buffers)
-                key = (call_id, *(ins[i].contents.data for i in self.array_input_indices),
-                       *(outs[i].contents.data for i in self.array_output_indices))
+                # the buffers' addresses and leading sizes: one traced call can serve several batch sizes (a
+                # jaxpr cached by JAX and vmapped again), and a recording holds the sizes it was made with
+                key = (call_id, *(_address_and_size(ins[i].contents) for i in self.array_input_indices),
+                       *(_address_and_size(outs[i].contents) for i in self.array_output_indices))
                 capture = self.captures.get(key)
                 if capture is None:
                     device = wp.get_device("cpu")
