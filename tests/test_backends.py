@@ -20,6 +20,7 @@ ROBOT = get_robot("luneckas2020")
 CTRL = TactileGaitController(ROBOT)
 TERRAIN = sample(get_terrain("high-large"), jax.random.PRNGKey(0), 6)
 SECONDS = 5.0
+PHYSICS_STEPS = (15 + 250) * 4  # per env in SECONDS: 15 settling and 250 control steps of 4 physics steps
 
 
 @pytest.fixture(scope="module")
@@ -47,7 +48,7 @@ def _agree(ref, out):
 def test_mujoco_c_backend_walks_like_mjx(mjx_run):
     out, st = rollout(ROBOT, TERRAIN, CTRL, CTRL.default_params(), SECONDS, jax.random.PRNGKey(1), backend="c",
                       nthread=2, stats=True)
-    assert st.backend == "c" and st.compile_s > 0 and st.env_steps == 6 * (15 + 250) * 4
+    assert st.backend == "c" and st.compile_s > 0 and st.env_steps == 6 * PHYSICS_STEPS
     np.testing.assert_allclose(np.asarray(out.start_pose), np.asarray(mjx_run.start_pose), atol=5e-3)
     _agree(mjx_run, out)
 
@@ -75,9 +76,9 @@ def test_warp_backend_walks_like_mjx(mjx_run):
     _agree(mjx_run, out)
     if jax.default_backend() == "cpu":
         # Warp's step was recorded a few times (once per set of buffers) and replayed at every other physics
-        # step of the walk (15 settling and 250 control steps of 4 physics steps; one call for all 6 envs) ...
+        # step of the walk (one call for all 6 envs) ...
         new, again = warp_cpu.STATS["recorded"] - recorded, warp_cpu.STATS["replayed"] - replayed
-        assert 0 < new <= 8 and again >= (15 + 250) * 4 - new, (new, again)
+        assert 0 < new <= 8 and again >= PHYSICS_STEPS - new, (new, again)
         # ... which changes the speed only: with Warp's Python run at every call the walk is the same bit for bit
         was, counts = warp_cpu.set_enabled(False), dict(warp_cpu.STATS)
         try:  # the switch is read when the call runs, so wait for the walk (XLA dispatches it asynchronously)

@@ -24,10 +24,12 @@ import collections
 import ctypes
 import os
 
+from hexjax.cache import OFF
+
 KNOWN_VERSIONS = ("1.18.0",)
 MAX_GRAPHS = 64  # per Warp function; the oldest recording is dropped past it
 STATS = collections.Counter()  # 'recorded' and 'replayed' calls, for tests and curious users
-_state = {"on": os.environ.get("HEXJAX_WARP_CPU_GRAPHS", "").lower() not in ("off", "0", "false")}
+_state = {"on": os.environ.get("HEXJAX_WARP_CPU_GRAPHS", "").strip().lower() not in OFF}
 
 
 def set_enabled(on: bool) -> bool:
@@ -55,13 +57,13 @@ def enable() -> bool:
 
     def ffi_callback(self, call_frame, platform):
         frame = call_frame.contents
-        # the first call is XLA's query for the handler's metadata: Warp answers it
-        if platform != wffi._FFI_PLATFORM_CPU or frame.extension_start or not _state["on"]:
+        # Warp's own callback answers XLA's first call (its query for the handler's metadata) and reports a call
+        # with the wrong number of buffers; it takes Warp's lock itself, so it is called outside that lock
+        if (platform != wffi._FFI_PLATFORM_CPU or frame.extension_start or not _state["on"]
+                or frame.args.size != self.num_inputs or frame.rets.size != self.num_outputs):
             return original(self, call_frame, platform)
         try:
             with wffi._FFI_CALLBACK_LOCK:
-                if frame.args.size != self.num_inputs or frame.rets.size != self.num_outputs:
-                    return original(self, call_frame, platform)  # Warp reports the mismatch
                 # the call's one attribute is its id (as in Warp's own callback)
                 attr = ctypes.cast(frame.attrs.attrs[0], ctypes.POINTER(wffi.XLA_FFI_Scalar)).contents
                 call_id = ctypes.cast(attr.value, ctypes.POINTER(ctypes.c_int64)).contents.value
