@@ -10,10 +10,15 @@ loads the executable instead (docs/benchmarks.md has the figures). Where it live
 `enable()` runs when `hexjax` is imported. It sets JAX's options through their environment variables when
 JAX is not imported yet (so nothing of JAX loads for `hexjax --help`), or through `jax.config` when it is;
 options the user set already are left alone. The first time a cache folder is made it says where, once.
+
+A cold compile also pays for tracing, which is Python: `rare_collections` keeps Python's garbage collector
+from sweeping the growing heap over and over while a large program is traced (`hexjax.sim.compiled` uses it).
 """
 
 from __future__ import annotations
 
+import contextlib
+import gc
 import os
 import sys
 from pathlib import Path
@@ -102,3 +107,26 @@ def every_cpu_process_writes() -> bool:
         return True
     except (ImportError, AttributeError):
         return False
+
+
+# Python's garbage-collector thresholds while a program is traced and lowered (`rare_collections`). A trace builds
+# millions of objects that live until it ends (jaxpr equations, tracers, MLIR ops), so under Python's defaults
+# (700, 10, 10) the collector runs full collections over a growing heap again and again: about 9 of them during the
+# tactile gradient program (8 envs), none with these thresholds. Measured on 2 cores, each row a fresh process,
+# tracing and lowering that program: 26.1-26.3 s at the defaults, 19.1-19.4 s with these, the same module (its
+# hash equal); the forward program 7.4-8.0 s against 6.8-7.5 s; peak memory the same (924 and 926 MB).
+# docs/benchmarks.md, 2026-11-28 (sixth session).
+TRACE_GC_THRESHOLD = (100_000, 50, 1_000)
+
+
+@contextlib.contextmanager
+def rare_collections():
+    """Raise Python's garbage-collector thresholds to at least `TRACE_GC_THRESHOLD` while the block runs (tracing
+    and lowering a large program), then put the caller's back. Objects still in reach are unaffected; cyclic
+    garbage made inside the block is freed by a later collection."""
+    old = gc.get_threshold()
+    gc.set_threshold(*(max(a, b) for a, b in zip(old, TRACE_GC_THRESHOLD)))
+    try:
+        yield
+    finally:
+        gc.set_threshold(*old)

@@ -22,7 +22,16 @@ os.environ.setdefault("XLA_FLAGS", TEST_XLA_FLAGS.format(devices=2))
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 
 __import__("hexjax")  # adds hexjax's XLA flags, YNNPACK's included, before any test starts JAX
+import gc  # noqa: E402
+
 import pytest  # noqa: E402
+
+from hexjax.cache import TRACE_GC_THRESHOLD  # noqa: E402
+
+# Python's collector runs rarely in the whole test process, not only where `hexjax.sim.compiled` traces a kept
+# program: tests also trace gradients, Brax's PPO and jitted helpers of their own. Each module ends with a full
+# collection (`_free_compiled_rollouts`), so nothing piles up across the run.
+gc.set_threshold(*TRACE_GC_THRESHOLD)
 
 _PEAKS = []
 

@@ -110,3 +110,35 @@ def test_a_program_lowers_the_same_whatever_the_process_traced_before():
     ns["module"](6)
     fresh_trace()
     assert ns["module"](5) == fresh
+
+
+def test_programs_are_traced_with_rare_collections_and_the_callers_thresholds_come_back():
+    """`hexjax.cache.rare_collections` raises Python's collector thresholds to `TRACE_GC_THRESHOLD` (never lowers
+    one), puts the caller's back even when the block raises, and `Compiled` traces under it."""
+    import gc
+
+    import jax
+    import jax.numpy as jnp
+    import pytest
+
+    from hexjax.cache import TRACE_GC_THRESHOLD, rare_collections
+    from hexjax.sim.compiled import Compiled
+    before = gc.get_threshold()
+    seen = []
+    try:
+        gc.set_threshold(700, 10, 10_000)
+        with pytest.raises(RuntimeError):
+            with rare_collections():
+                seen.append(gc.get_threshold())
+                raise RuntimeError
+        assert seen == [(TRACE_GC_THRESHOLD[0], TRACE_GC_THRESHOLD[1], 10_000)]
+        assert gc.get_threshold() == (700, 10, 10_000)
+
+        def f(x):
+            seen.append(gc.get_threshold())  # runs while the program is traced
+            return jnp.sin(x) * 2
+
+        assert float(Compiled(jax.jit(f))(jnp.float32(0.5))) == pytest.approx(2 * 0.479425538)
+        assert seen[-1][:2] == TRACE_GC_THRESHOLD[:2] and gc.get_threshold() == (700, 10, 10_000)
+    finally:
+        gc.set_threshold(*before)

@@ -10,7 +10,8 @@ the controller's module, the versions of jax, jaxlib, mujoco and mujoco-mjx, the
 A file that does not load is compiled afresh and replaced.
 
 A program is traced from empty tracing caches (`fresh_trace`), so that the same program gives the same module,
-and so the same persistent-cache key, whatever the process traced before it.
+and so the same persistent-cache key, whatever the process traced before it, and with Python's cyclic garbage
+collector mostly idle (`hexjax.cache.rare_collections`).
 """
 
 from __future__ import annotations
@@ -199,13 +200,14 @@ class Compiled:
         leaves, in_tree = jax.tree_util.tree_flatten(args)
         path = self._path(sig)
         exe, source = None, "disk"
-        if path is not None and path.exists():
-            exe = self._load(path, leaves)
-        if exe is None and path is not None:
-            exe, source = self._export(path, args, leaves, in_tree), "compiled"
-        if exe is None:
-            fresh_trace()
-            exe, source = self.jitted.lower(*args).compile(), "compiled"
+        with cache.rare_collections():
+            if path is not None and path.exists():
+                exe = self._load(path, leaves)
+            if exe is None and path is not None:
+                exe, source = self._export(path, args, leaves, in_tree), "compiled"
+            if exe is None:
+                fresh_trace()
+                exe, source = self.jitted.lower(*args).compile(), "compiled"
         self.executables[sig] = exe
         # timed before the first call: on the GPU that call can block until the run ends (MJX's solver loops
         # read their stopping test on the host), which is run time, not compile time
