@@ -29,6 +29,7 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 from tqdm.auto import tqdm
 
+from hexjax import cache
 from hexjax.sim.config import GRAD_SOLVERS, RolloutConfig
 from hexjax.sim.step import control_steps, settle_steps, substeps
 from hexjax.tune.config import BACKWARDS, load_tune_config
@@ -36,9 +37,11 @@ from hexjax.tune.objective import Problem
 
 
 def _time(fn, args, repeats: int):
-    """(compile s, best call s, output) of jitted fn: lower + compile timed apart from the calls."""
+    """(compile s, best call s, output) of jitted fn: lower + compile timed apart from the calls, traced as a
+    tuning run's `Compiled` programs are (`hexjax.cache.rare_collections`)."""
     t0 = time.perf_counter()
-    compiled = fn.lower(*args).compile()
+    with cache.rare_collections():
+        compiled = fn.lower(*args).compile()
     compile_s = time.perf_counter() - t0
     return (compile_s,) + best_call(compiled, args, repeats)
 
