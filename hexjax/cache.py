@@ -111,11 +111,11 @@ def every_cpu_process_writes() -> bool:
 
 # Python's garbage-collector thresholds while a program is traced and lowered (`rare_collections`). A trace builds
 # millions of objects that live until it ends (jaxpr equations, tracers, MLIR ops), so under Python's defaults
-# (700, 10, 10) the collector runs full collections over a growing heap again and again: about 9 of them during the
-# tactile gradient program (8 envs), none with these thresholds. Measured on 2 cores, each row a fresh process,
-# tracing and lowering that program: 26.1-26.3 s at the defaults, 19.1-19.4 s with these, the same module (its
-# hash equal); the forward program 7.4-8.0 s against 6.8-7.5 s; peak memory the same (924 and 926 MB).
-# docs/benchmarks.md, 2026-11-28 (sixth session).
+# (700, 10, 10) the collector runs full collections over a growing heap again and again: 9 of them while the
+# tactile gradient program (8 envs) is traced, none with these thresholds. Measured on 2 cores, fresh processes,
+# tracing and lowering that program: 26.1-26.3 s at the defaults (two runs), 19.1-21.9 s with these (four), the
+# same module (its hash equal); the forward program 8.0-8.6 s against 7.4-8.6 s; peak memory 924 and 926 MB. In
+# the test suite's long-lived workers the gain is about half that (docs/benchmarks.md, 2026-11-28, sixth session).
 TRACE_GC_THRESHOLD = (100_000, 50, 1_000)
 
 

@@ -7,8 +7,10 @@ s, the size of the lowered StableHLO text, the number of times MJX's `step` was 
 --run, env-steps/s (best of two calls after a warm-up);
 gradient rows add the loss and the gradient's norm, so options that change the numbers show it. --json writes
 the rows (and each gradient as .npy beside it). Options are XLA DebugOptions fields, e.g.
-'{"xla_gpu_autotune_level": 0}'. Figures: docs/benchmarks.md, issue 19 (2026-11-25, fifth session; the phases of
-each compile: 2026-11-27, fifth session).
+'{"xla_gpu_autotune_level": 0}'. --gc python traces under Python's own garbage-collector thresholds instead of
+hexjax's (`hexjax.cache.rare_collections`); --trace-only stops after lowering. Figures: docs/benchmarks.md,
+issue 19 (2026-11-25, fifth session; the phases of each compile: 2026-11-27, fifth session; the collector:
+2026-11-28, sixth session).
 
     python scripts/compile_probe.py --batch 4096 --duration 3 --run --options '{}' '{"xla_gpu_autotune_level": 0}'
 """
@@ -17,6 +19,8 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
+import gc
+import hashlib
 import json
 import time
 
@@ -24,6 +28,7 @@ import jax
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
+from hexjax import cache
 from hexjax.experiments.bench_grad import best_call, objective_program, physics_steps
 from hexjax.sim.model import mjx, swapped
 from hexjax.tune.config import BACKWARDS, load_tune_config
@@ -54,6 +59,9 @@ def main():
     ap.add_argument("--backward", default="sequential", choices=BACKWARDS, help="the tuning key backward")
     ap.add_argument("--duration", type=float, default=None, help="walk s instead of the config's (9 s)")
     ap.add_argument("--json", default=None, help="write the rows here")
+    ap.add_argument("--gc", choices=("hexjax", "python"), default="hexjax",
+                    help="garbage-collector thresholds while tracing: hexjax's (rare_collections) or Python's")
+    ap.add_argument("--trace-only", action="store_true", help="trace and lower only, no XLA compile")
     a = ap.parse_args()
     cfg = load_tune_config("tactile_tripod", {"unroll_substeps": True} if a.unroll_substeps else None)
     p = Problem.build(dataclasses.replace(cfg, solver_grad="implicit", backward=a.backward))
@@ -62,21 +70,30 @@ def main():
     terr, keys = p.train_batch(0, a.batch)
     rows = []
     for mode in a.modes.split(","):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         f = objective_program(p, grad=mode != "forward", duration=a.duration)
-        with _counting(mjx, "step") as traced:
+        full = gc.get_stats()[2]["collections"]
+        with _counting(mjx, "step") as traced, (cache.rare_collections() if a.gc == "hexjax" else
+                                                 contextlib.nullcontext()):
             tr = f.trace(u0, terr, keys)
-        trace_s = time.perf_counter() - t0
-        low = tr.lower()
-        lower_s = time.perf_counter() - t0
+            trace_s = time.perf_counter() - t0
+            low = tr.lower()
+        lower_s, lower_cpu = time.perf_counter() - t0, time.process_time() - c0
         hlo_chars = len(low.as_text())
+        base = dict(mode=mode, gc=a.gc, trace_s=round(trace_s, 2), lower_s=round(lower_s, 2),
+                    lower_cpu_s=round(lower_cpu, 2), full_collections=gc.get_stats()[2]["collections"] - full,
+                    stablehlo_chars=hlo_chars, stablehlo_sha=hashlib.sha256(low.as_text().encode()).hexdigest()[:16],
+                    steps_traced=traced[0])
+        if a.trace_only:
+            print(json.dumps(base), flush=True)
+            rows.append(base)
+            continue
         for opt in a.options:
             o = json.loads(opt)
             t0 = time.perf_counter()
             c = low.compile(compiler_options=o or None)
             comp_s = time.perf_counter() - t0
-            row = dict(mode=mode, options=o, trace_s=round(trace_s, 2), lower_s=round(lower_s, 2),
-                       compile_s=round(comp_s, 2), stablehlo_chars=hlo_chars, steps_traced=traced[0])
+            row = dict(base, options=o, compile_s=round(comp_s, 2))
             if a.run:
                 best, out = best_call(c, (u0, terr, keys), 2)
                 row["env_steps_per_s"] = round(a.batch * n_phys / best, 1)

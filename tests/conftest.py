@@ -243,9 +243,10 @@ def pytest_terminal_summary(terminalreporter):
     comp = _WORKER_COMPILE or _COMPILE
     if comp:
         total = sum(v[0] for v in comp.values())
+        missed, loaded = sum(v[1] for v in comp.values()), sum(v[2] for v in comp.values())
         terminalreporter.write_line(
-            f"JAX compile (trace + lower + compile or cache load) {total:.0f} s in all; {sum(v[1] for v in comp.values())}"
-            f" programs were compiled in >= 1 s, {sum(v[2] for v in comp.values())} were loaded from the cache; the most per test:")
+            f"JAX compile (trace + lower + compile or cache load) {total:.0f} s in all; {missed} programs were "
+            f"compiled in >= 1 s, {loaded} were loaded from the cache; the most per test:")
         for nodeid, (secs, miss, hit) in sorted(comp.items(), key=lambda kv: -kv[1][0])[:15]:
             if secs < 0.05:
                 break
