@@ -35,11 +35,16 @@ OFF = ("off", "0", "false", "no", "none")
 _OPTIONS = {"jax_persistent_cache_min_compile_time_secs": 0.0, "jax_persistent_cache_min_entry_size_bytes": 0}
 
 
+def switched_off(name: str) -> bool:
+    """Whether environment variable `name` holds one of the `OFF` words (any case, spaces around ignored)."""
+    return os.environ.get(name, "").strip().lower() in OFF
+
+
 def cache_dir() -> Optional[Path]:
     """The cache folder the environment asks for, or None when it is turned off."""
-    v = os.environ.get(ENV, "").strip()
-    if v.lower() in OFF and v:
+    if switched_off(ENV):
         return None
+    v = os.environ.get(ENV, "").strip()
     if v:
         return Path(v).expanduser()
     base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")

@@ -79,11 +79,11 @@ def main():
             trace_s = time.perf_counter() - t0
             low = tr.lower()
         lower_s, lower_cpu = time.perf_counter() - t0, time.process_time() - c0
-        hlo_chars = len(low.as_text())
+        full = gc.get_stats()[2]["collections"] - full
+        text = low.as_text()
         base = dict(mode=mode, gc=a.gc, trace_s=round(trace_s, 2), lower_s=round(lower_s, 2),
-                    lower_cpu_s=round(lower_cpu, 2), full_collections=gc.get_stats()[2]["collections"] - full,
-                    stablehlo_chars=hlo_chars, stablehlo_sha=hashlib.sha256(low.as_text().encode()).hexdigest()[:16],
-                    steps_traced=traced[0])
+                    lower_cpu_s=round(lower_cpu, 2), full_collections=full, stablehlo_chars=len(text),
+                    stablehlo_sha=hashlib.sha256(text.encode()).hexdigest()[:16], steps_traced=traced[0])
         if a.trace_only:
             print(json.dumps(base), flush=True)
             rows.append(base)

@@ -22,14 +22,13 @@ Warp's own behaviour is kept. `HEXJAX_WARP_CPU_GRAPHS=off` turns it off as well.
 
 import collections
 import ctypes
-import os
 
-from hexjax.cache import OFF
+from hexjax.cache import switched_off
 
 KNOWN_VERSIONS = ("1.18.0",)
 MAX_GRAPHS = 64  # per Warp function; the oldest recording is dropped past it
 STATS = collections.Counter()  # 'recorded' and 'replayed' calls, for tests and curious users
-_state = {"on": os.environ.get("HEXJAX_WARP_CPU_GRAPHS", "").strip().lower() not in OFF}
+_state = {"on": not switched_off("HEXJAX_WARP_CPU_GRAPHS")}
 
 
 def set_enabled(on: bool) -> bool:
