@@ -3,25 +3,29 @@
 Lowers each program once (the tactile_tripod objective, implicit backward, B = --batch) and compiles it once per
 option set with `Lowered.compile(compiler_options=...)`, so every set sees the same HLO. Prints one JSON line per
 (program, options): tracing and lowering s (`lower_s`, of which `trace_s` is the tracing to a jaxpr), XLA compile
-s, the size of the lowered StableHLO text, the number of times MJX's `step` was traced for the program and, with
---run, env-steps/s (best of two calls after a warm-up);
-gradient rows add the loss and the gradient's norm, so options that change the numbers show it. --json writes
-the rows (and each gradient as .npy beside it). Options are XLA DebugOptions fields, e.g.
-'{"xla_gpu_autotune_level": 0}'. --gc python traces under Python's own garbage-collector thresholds instead of
-hexjax's (`hexjax.cache.rare_collections`); --trace-only stops after lowering. Figures: docs/benchmarks.md,
-issue 19 (2026-11-25, fifth session; the phases of each compile: 2026-11-27, fifth session; the collector:
-2026-11-28, sixth session).
+s (`compile_s` wall, `compile_cpu_s` the process's CPU over all of XLA's threads), the size of the lowered
+StableHLO text, the number of times MJX's `step` was traced for the program and, with --run, env-steps/s (best of
+two calls after a warm-up); gradient rows add the loss and the gradient's norm, so options that change the numbers
+show it. --kernels counts the optimised program's fusions (LLVM's kernels), instructions and while loops: a
+measure of what XLA compiles that does not vary from run to run as the seconds do. --json writes the rows (and
+each gradient as .npy beside it). Options are XLA DebugOptions fields, e.g. '{"xla_gpu_autotune_level": 0}'.
+--gc python traces under Python's own garbage-collector thresholds instead of hexjax's
+(`hexjax.cache.rare_collections`); --trace-only stops after lowering. Figures: docs/benchmarks.md, issue 19
+(2026-11-25, fifth session; the phases of each compile: 2026-11-27, fifth session; the collector: 2026-11-28,
+sixth session; the kernels of a slimmer scan carry: 2026-11-28, seventh session).
 
     python scripts/compile_probe.py --batch 4096 --duration 3 --run --options '{}' '{"xla_gpu_autotune_level": 0}'
 """
 from __future__ import annotations
 
 import argparse
+import collections
 import contextlib
 import dataclasses
 import gc
 import hashlib
 import json
+import re
 import time
 
 import jax
@@ -49,6 +53,37 @@ def _counting(module, name):
         yield n
 
 
+def _table(lines, name, pattern):
+    """{id: match groups} of one of the tables that close XLA's HLO text (FileNames, FileLocations, ...)."""
+    out, i = {}, lines.index(name) + 1
+    while i < len(lines) and (m := re.match(pattern, lines[i])):
+        out[int(m.group(1))] = m.groups()[1:]
+        i += 1
+    return out
+
+
+def _fusions_by_source(hlo: str) -> collections.Counter:
+    """Fusions of an optimised HLO text counted by the source file of the operation each was made from (the
+    innermost frame of its metadata's `stack_frame_id`; '?' where it has none)."""
+    lines = hlo.split("\n")
+    files = _table(lines, "FileNames", r'^(\d+) "(.*)"$')
+    locs = _table(lines, "FileLocations", r"^(\d+) \{file_name_id=(\d+)")
+    frames = _table(lines, "StackFrames", r"^(\d+) \{file_location_id=(\d+)")
+    count = collections.Counter()
+    for line in lines:
+        if not re.match(r"^\s*(ROOT )?\S+ = \S+ fusion\(", line):
+            continue
+        m = re.search(r"stack_frame_id=(\d+)", line)
+        frame = frames.get(int(m.group(1))) if m else None
+        path = files[int(locs[int(frame[0])][0])][0] if frame else "?"
+        if "site-packages/" in path:
+            path = path.split("site-packages/")[-1]
+        elif "/hexjax/" in path:
+            path = path[path.rindex("/hexjax/") + 1:]
+        count[path] += 1
+    return count
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--batch", type=int, default=4096, help="envs per call")
@@ -62,6 +97,9 @@ def main():
     ap.add_argument("--gc", choices=("hexjax", "python"), default="hexjax",
                     help="garbage-collector thresholds while tracing: hexjax's (rare_collections) or Python's")
     ap.add_argument("--trace-only", action="store_true", help="trace and lower only, no XLA compile")
+    ap.add_argument("--kernels", action="store_true",
+                    help="count the fusions and instructions of the optimised program (XLA's compile time follows "
+                         "the fusions: each is a kernel of its own for LLVM)")
     a = ap.parse_args()
     cfg = load_tune_config("tactile_tripod", {"unroll_substeps": True} if a.unroll_substeps else None)
     p = Problem.build(dataclasses.replace(cfg, solver_grad="implicit", backward=a.backward))
@@ -90,10 +128,15 @@ def main():
             continue
         for opt in a.options:
             o = json.loads(opt)
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             c = low.compile(compiler_options=o or None)
-            comp_s = time.perf_counter() - t0
-            row = dict(base, options=o, compile_s=round(comp_s, 2))
+            comp_s, comp_cpu = time.perf_counter() - t0, time.process_time() - c0
+            row = dict(base, options=o, compile_s=round(comp_s, 2), compile_cpu_s=round(comp_cpu, 2))
+            if a.kernels:
+                hlo = c.as_text()
+                by_file = _fusions_by_source(hlo)
+                row.update(fusions=sum(by_file.values()), instructions=hlo.count(" = "),
+                           whiles=hlo.count(" while("), fusions_by_source=dict(by_file.most_common(10)))
             if a.run:
                 best, out = best_call(c, (u0, terr, keys), 2)
                 row["env_steps_per_s"] = round(a.batch * n_phys / best, 1)
