@@ -55,6 +55,8 @@ def _counting(module, name):
 
 def _table(lines, name, pattern):
     """{id: match groups} of one of the tables that close XLA's HLO text (FileNames, FileLocations, ...)."""
+    if name not in lines:
+        return {}
     out, i = {}, lines.index(name) + 1
     while i < len(lines) and (m := re.match(pattern, lines[i])):
         out[int(m.group(1))] = m.groups()[1:]
@@ -98,8 +100,8 @@ def main():
                     help="garbage-collector thresholds while tracing: hexjax's (rare_collections) or Python's")
     ap.add_argument("--trace-only", action="store_true", help="trace and lower only, no XLA compile")
     ap.add_argument("--kernels", action="store_true",
-                    help="count the fusions and instructions of the optimised program (XLA's compile time follows "
-                         "the fusions: each is a kernel of its own for LLVM)")
+                    help="count the optimised program's fusions (each a kernel of its own for LLVM), instructions and "
+                         "loops, and its fusions by source file")
     a = ap.parse_args()
     cfg = load_tune_config("tactile_tripod", {"unroll_substeps": True} if a.unroll_substeps else None)
     p = Problem.build(dataclasses.replace(cfg, solver_grad="implicit", backward=a.backward))
