@@ -72,6 +72,10 @@ def test_cpg_gradient_matches_central_differences():
     on the AVX-512 machine: 1.000, 1.000 and 0.976 for the three groups.
     With the solver converged, the implicit backward (`solver_grad='implicit'`) must give the same gradient as
     the unrolled one (cosine >= 0.99 per group) and pass the same check.
+    Both gradients recompute each control step in the backward pass (`remat`), as the tuner's do, so this check
+    holds the tuner's backward path to central differences while the tactile check above holds the default one.
+    The cosines are those without it to the digits printed, and XLA compiles the two gradient programs in about
+    25 s less CPU (a third fewer kernels: docs/benchmarks.md, 2026-11-28, seventh session).
     The 36 differences come from a forward program of their own: there a call costs 0.035 s against 0.46 s for
     the value_and_grad program (13x, 2 cores), so its compile (about 16 s with tracing) pays for itself in a cold
     run, and a warm run of this test takes 14.7 s instead of 31.7 s. (The tactile check above keeps one program:
@@ -85,7 +89,7 @@ def test_cpg_gradient_matches_central_differences():
     spec = get_terrain("flat")
     terr, keys = check_batch(spec, 4)
     phys = dataclasses.replace(physics_for(spec.kind), iterations=4)
-    rc = RolloutConfig(settle_time=0.1, solver_grad="unrolled")
+    rc = RolloutConfig(settle_time=0.1, solver_grad="unrolled", remat=True)
     model, fn = rollout_function(robot, ctrl, 0.4, physics=phys, config=rc)
     groups = {"converter": ["lc_trim", "clearance"], "contact thresholds": ["f_contact"],
               "elevator": ["elevated_clearance", "ramp_time"]}
