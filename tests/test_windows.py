@@ -86,9 +86,9 @@ def test_a_kept_solution_replaces_the_solve():
     """Through `hexjax.sim.implicit.solutions`, a control step's physics keeps each substep's constraint
     solution, and given them back it runs no solver (the windows' backward passes take the forward's solutions,
     so they do not solve a second time) and reaches the same state, to float32 rounding: the two programs are
-    compiled apart, and XLA need not round their arithmetic after the solve alike. They came out bit-identical on
-    the Intel VMs with AVX-512; on an AMD EPYC with AVX2 only, 7 of the 25 qpos entries differ, by up to 4.1e-11
-    (2026-11-28). A wrong solution, each substep given the one of the substep before, moves the state by 6.9e-6
+    compiled apart, and XLA need not round their arithmetic after the solve alike. They came out bit-identical
+    on every VM before 2026-11-28's AMD EPYC with AVX2 only, where 7 of the 25 qpos entries differ, by up to
+    4.1e-11. A wrong solution, each substep given the one of the substep before, moves the state by 6.9e-6
     there, so the 1e-9 bound still tells a kept solution from a wrong one."""
     robot = luneckas2020()
     phys = physics_for("flat")
