@@ -1,13 +1,18 @@
 """Where does a control step of the batched rollout spend its time? (issue 7, throughput)
 
-Two views, both at one batch size on obstacle terrain with the full (tactile) controller:
+Three views, each at one batch size on obstacle terrain (where a controller runs, the full tactile one):
 
 1. Stages. Each stage of `mjx.step` (and each piece hexjax adds per control step) is jitted on its own,
    vmapped over the batch and applied `--reps` times in a `lax.scan` to a settled state, so its time per
    call is measured apart from the others. The stage times need not add up to the fused step: XLA fuses
    across stage borders in the real program.
+   A stage that leaves the fields it reads unchanged computes the same values at each repetition; an
+   optimisation barrier keeps XLA from hoisting it out of the loop (`_repeated`).
 2. Variants. The whole rollout (`hexjax.sim.rollout.rollout`) with one setting changed at a time, so
    what each lever would buy is measured in the real program.
+3. Kernels (`--kernels`, CPU only). The whole `mjx.step`, scanned `--reps` times, run once under
+   `jax.profiler`; XLA:CPU's kernel events are summed by class (the name without its `.N` suffix). XLA:CPU
+   writes those events only with `XLA_FLAGS=--xla_cpu_enable_xprof_traceme=true` set before the run.
 
 Prints a table and writes JSON (`--json`). Run it where the numbers matter (the GPU, through the device
 tool); on a 2-core CPU use a small batch.
@@ -16,8 +21,14 @@ tool); on a 2-core CPU use a small batch.
 from __future__ import annotations
 
 import argparse
+import collections
 import dataclasses
+import glob
+import gzip
 import json
+import os
+import re
+import tempfile
 import time
 
 import jax
@@ -44,22 +55,26 @@ def _time(fn, *args, repeats=3):
     return best
 
 
-def stage_profile(b: int, reps: int, terrain: str):
-    from mujoco.mjx._src import collision_driver, constraint, forward, smooth, solver
+def _repeated(step, carry, reps: int):
+    """`step` applied `reps` times to its own output, in a `lax.scan`. Each application takes the carry through an
+    optimisation barrier together with the step's index. A stage that leaves the fields it reads unchanged computes
+    the same values every time, and without the barrier XLA hoists it out of the loop and runs it once: on the CPU
+    the time per call of collision, kinematics and the solve fell 3-10x from 2 to 20 repetitions."""
+    def body(c, i):
+        c, _ = jax.lax.optimization_barrier((c, i))
+        return step(c), None
+    return jax.lax.scan(body, carry, jnp.arange(reps))[0]
+
+
+def _settled(b: int, terrain: str):
+    """The Luneckas 2020 robot on `b` draws of `terrain`, settled 0.5 s in its stance so that the feet carry the
+    weight, as in a real step: (spec, sim model, terrain batch, batched model, its vmap axes, data)."""
     spec = get_robot("luneckas2020")
-    physics = PhysicsConfig()
-    sm = sim_model(spec, physics)
+    sm = sim_model(spec, PhysicsConfig())
     terr = sample(get_terrain(terrain), jax.random.PRNGKey(0), b)
     m_b, in_axes = batch_model(sm, terr)
-    ctrl = TactileGaitController(spec)
-    params = ctrl.default_params()
+    d = jax.jit(jax.vmap(lambda _: sm.init_data(jnp.zeros(3))))(jnp.arange(b))
 
-    def init(_):
-        return sm.init_data(jnp.zeros(3))
-
-    d = jax.jit(jax.vmap(init))(jnp.arange(b))
-
-    # settle 0.5 s in the stance so the feet carry the weight, as in a real step
     @jax.jit
     def settle(m, d):
         def one(m, d):
@@ -68,6 +83,14 @@ def stage_profile(b: int, reps: int, terrain: str):
 
     d = settle(m_b, d)
     jax.block_until_ready(d)
+    return spec, sm, terr, m_b, in_axes, d
+
+
+def stage_profile(b: int, reps: int, terrain: str):
+    from mujoco.mjx._src import collision_driver, constraint, forward, smooth, solver
+    spec, sm, terr, m_b, in_axes, d = _settled(b, terrain)
+    ctrl = TactileGaitController(spec)
+    params = ctrl.default_params()
 
     def smooth_pos(m, d):
         d = smooth.kinematics(m, d)
@@ -89,8 +112,7 @@ def stage_profile(b: int, reps: int, terrain: str):
     rows = []
 
     def timed(name, body):
-        f = jax.jit(jax.vmap(lambda m, d: jax.lax.scan(lambda dd, _: (body(m, dd), None), d, None, length=reps)[0],
-                             in_axes=(in_axes, 0)))
+        f = jax.jit(jax.vmap(lambda m, d: _repeated(lambda dd: body(m, dd), d, reps), in_axes=(in_axes, 0)))
         s = _time(f, m_b, d) / reps
         rows.append(dict(stage=name, ms_per_call=round(1e3 * s, 3), ns_per_env=round(1e9 * s / b, 1)))
         print(f"{name:<32} {1e3 * s:9.3f} ms/call {1e9 * s / b:9.1f} ns/env", flush=True)
@@ -119,17 +141,64 @@ def stage_profile(b: int, reps: int, terrain: str):
 
     for name, f, args in [
         ("slots+env_model+read_obs", jax.jit(jax.vmap(
-            lambda m, d, t: jax.lax.scan(lambda dd, _: (body_slots(m, dd, t), None), d, None,
-                                         length=reps)[0], in_axes=(in_axes, 0, 0))), (m_b, d, terr)),
-        ("read_obs", jax.jit(jax.vmap(
-            lambda m, d: jax.lax.scan(lambda dd, _: (body_obs(m, dd), None), d, None, length=reps)[0],
-            in_axes=(in_axes, 0))), (m_b, d)),
+            lambda m, d, t: _repeated(lambda dd: body_slots(m, dd, t), d, reps), in_axes=(in_axes, 0, 0))),
+         (m_b, d, terr)),
+        ("read_obs", jax.jit(jax.vmap(lambda m, d: _repeated(lambda dd: body_obs(m, dd), d, reps),
+                                      in_axes=(in_axes, 0))), (m_b, d)),
         ("controller.step (tactile)", jax.jit(jax.vmap(scan_ctrl)), (cs0, obs)),
     ]:
         s = _time(f, *args) / reps
         rows.append(dict(stage=name, ms_per_call=round(1e3 * s, 3), ns_per_env=round(1e9 * s / b, 1)))
         print(f"{name:<32} {1e3 * s:9.3f} ms/call {1e9 * s / b:9.1f} ns/env", flush=True)
     return rows
+
+
+# host-side events of the profile, and loop events that enclose the kernels of their bodies (counted there)
+_NOT_KERNELS = re.compile(r"^(\$|ThunkExecutor|PjitFunction|SlinkyThreadPool|CommonPjRt|while|conditional)")
+
+
+def _kernels_unavailable() -> str:
+    """Why `--kernels` cannot run here, or '' (checked before any work)."""
+    if jax.devices()[0].platform != "cpu":
+        return "--kernels reads XLA:CPU's kernel events; on a GPU use scripts/profile_grad.py's profile"
+    if "xla_cpu_enable_xprof_traceme=true" not in os.environ.get("XLA_FLAGS", ""):
+        return ("--kernels: XLA:CPU writes kernel events only with XLA_FLAGS=--xla_cpu_enable_xprof_traceme=true "
+                "set before the run")
+    return ""
+
+
+def kernel_profile(b: int, reps: int, terrain: str, top: int = 15):
+    _, _, _, m_b, in_axes, d = _settled(b, terrain)
+    f = jax.jit(jax.vmap(lambda m, d: jax.lax.scan(lambda dd, _: (mjx.step(m, dd), None), d, None, length=reps)[0],
+                         in_axes=(in_axes, 0)))
+    step_s = _time(f, m_b, d) / reps
+    with tempfile.TemporaryDirectory() as tmp:
+        jax.profiler.start_trace(tmp, create_perfetto_trace=True)
+        jax.block_until_ready(f(m_b, d))
+        jax.profiler.stop_trace()
+        (path,) = glob.glob(f"{tmp}/**/*.trace.json.gz", recursive=True)
+        with gzip.open(path) as fh:
+            events = json.load(fh)
+    events = events["traceEvents"] if isinstance(events, dict) else events
+    kernels = [e for e in events if e.get("ph") == "X" and not _NOT_KERNELS.match(e["name"])]
+    if not kernels:
+        raise SystemExit("--kernels: the profile holds no kernel events (was XLA_FLAGS set before jax started?)")
+    us, count = collections.Counter(), collections.Counter()
+    for e in kernels:
+        name = re.sub(r"\.\d+$", "", e["name"])
+        us[name] += e["dur"]
+        count[name] += 1
+    total = sum(us.values())
+    small = sum(e["dur"] for e in kernels if e["dur"] < 5)
+    print(f"mjx.step {1e3 * step_s:.2f} ms for {b} envs; {len(kernels)} kernel events, {total / 1e3:.1f} ms of CPU "
+          f"over {reps} steps ({small / 1e3:.1f} ms in events under 5 us)", flush=True)
+    rows = []
+    for name, t in us.most_common(top):
+        rows.append(dict(kernel_class=name, ms_per_step=round(t / 1e3 / reps, 3), share=round(t / total, 4),
+                         events=count[name]))
+        print(f"{name:<36} {t / 1e3 / reps:9.3f} ms/step {100 * t / total:6.1f} % {count[name]:7d} events")
+    return dict(step_ms=round(1e3 * step_s, 3), kernel_events=len(kernels), kernel_ms=round(total / 1e3, 1),
+                under_5us_ms=round(small / 1e3, 1), reps=reps, classes=rows)
 
 
 def variant_profile(b: int, seconds: float, terrain: str, names):
@@ -175,14 +244,19 @@ def main():
     ap.add_argument("--variants", default="default,solver as fixed scan (no while_loop),torso_slots=0,"
                                           "slots_per_leg=1,iterations=1")
     ap.add_argument("--skip-stages", action="store_true")
+    ap.add_argument("--kernels", action="store_true", help="also sum XLA:CPU's kernel events by class (module doc)")
     ap.add_argument("--json", default="")
     a = ap.parse_args()
+    if a.kernels and (why := _kernels_unavailable()):
+        ap.error(why)
     dev = jax.devices()[0]
     res = dict(device=f"{dev.platform}:{getattr(dev, 'device_kind', '')}", jax=jax.__version__, batch=a.batch,
                terrain=a.terrain, date=time.strftime("%Y-%m-%d"))
     print(res, flush=True)
     if not a.skip_stages:
         res["stages"] = stage_profile(a.batch, a.reps, a.terrain)
+    if a.kernels:
+        res["kernels"] = kernel_profile(a.batch, a.reps, a.terrain)
     names = [n for n in a.variants.split(",") if n]
     res["variants"] = variant_profile(a.batch, a.seconds, a.terrain, names) if names else []
     if a.json:
