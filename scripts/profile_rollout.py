@@ -153,8 +153,11 @@ def stage_profile(b: int, reps: int, terrain: str):
     return rows
 
 
-# host-side events of the profile, and loop events that enclose the kernels of their bodies (counted there)
-_NOT_KERNELS = re.compile(r"^(\$|ThunkExecutor|PjitFunction|SlinkyThreadPool|CommonPjRt|while|conditional)")
+# a kernel event is named after its HLO instruction ("dot.418", "broadcast_multiply_fusion.3"). Host-side events are
+# not ("ParseArguments", "ThunkExecutor::Execute", "$api.py:..."), nor are the "end: dot" markers. Loop events
+# enclose the kernels of their bodies, which are counted there.
+_KERNEL = re.compile(r"[a-z][a-z0-9_\-]*(\.\d+)?")
+_LOOP = re.compile(r"(while|conditional)\b")
 
 
 def _kernels_unavailable() -> str:
@@ -180,7 +183,7 @@ def kernel_profile(b: int, reps: int, terrain: str, top: int = 15):
         with gzip.open(path) as fh:
             events = json.load(fh)
     events = events["traceEvents"] if isinstance(events, dict) else events
-    kernels = [e for e in events if e.get("ph") == "X" and not _NOT_KERNELS.match(e["name"])]
+    kernels = [e for e in events if e.get("ph") == "X" and _KERNEL.fullmatch(e["name"]) and not _LOOP.match(e["name"])]
     if not kernels:
         raise SystemExit("--kernels: the profile holds no kernel events (was XLA_FLAGS set before jax started?)")
     us, count = collections.Counter(), collections.Counter()
