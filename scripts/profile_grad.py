@@ -95,9 +95,9 @@ def _phase(op_name: str) -> str:
     return "recompute" if "rematted_computation" in op_name else "transpose"
 
 
-def _kernel_times(trace_dir: str, module: str) -> tuple[dict, float]:
-    """(hlo op -> summed device microseconds, span of the events in s) from the profiler's Perfetto trace,
-    for the events of `module` on the device lanes (the GPU's; all lanes on a CPU)."""
+def kernel_events(trace_dir: str, module: str) -> list[dict]:
+    """The kernel events of `module` in the profiler's Perfetto trace: those that name an HLO instruction
+    (`args["hlo_op"]`), on the device lanes (the GPU's; all lanes on a CPU), the containers left out."""
     (path,) = glob.glob(os.path.join(trace_dir, "**", "*perfetto_trace.json.gz"), recursive=True)
     with gzip.open(path) as f:
         data = json.load(f)
@@ -105,7 +105,7 @@ def _kernel_times(trace_dir: str, module: str) -> tuple[dict, float]:
     pnames = {e["pid"]: e["args"]["name"] for e in events
               if e.get("ph") == "M" and e.get("name") == "process_name" and "args" in e}
     gpu_pids = {p for p, n in pnames.items() if "GPU" in n or "gpu" in n}
-    times, t_lo, t_hi = collections.Counter(), np.inf, -np.inf
+    kept = []
     for e in events:
         a = e.get("args") or {}
         if e.get("ph") != "X" or "hlo_op" not in a or module not in str(a.get("hlo_module", "")):
@@ -114,7 +114,15 @@ def _kernel_times(trace_dir: str, module: str) -> tuple[dict, float]:
             continue
         if a["hlo_op"].split(".")[0] in _CONTAINERS:
             continue
-        times[a["hlo_op"]] += float(e.get("dur", 0.0))
+        kept.append(e)
+    return kept
+
+
+def _kernel_times(trace_dir: str, module: str) -> tuple[dict, float]:
+    """(hlo op -> summed device microseconds, span of the events in s) from `kernel_events`."""
+    times, t_lo, t_hi = collections.Counter(), np.inf, -np.inf
+    for e in kernel_events(trace_dir, module):
+        times[e["args"]["hlo_op"]] += float(e.get("dur", 0.0))
         t_lo, t_hi = min(t_lo, e["ts"]), max(t_hi, e["ts"] + e.get("dur", 0.0))
     return times, (t_hi - t_lo) * 1e-6 if times else 0.0
 

@@ -23,8 +23,6 @@ from __future__ import annotations
 import argparse
 import collections
 import dataclasses
-import glob
-import gzip
 import json
 import os
 import re
@@ -153,13 +151,6 @@ def stage_profile(b: int, reps: int, terrain: str):
     return rows
 
 
-# a kernel event is named after its HLO instruction ("dot.418", "broadcast_multiply_fusion.3"). Host-side events are
-# not ("ParseArguments", "ThunkExecutor::Execute", "$api.py:..."), nor are the "end: dot" markers. Loop events
-# enclose the kernels of their bodies, which are counted there.
-_KERNEL = re.compile(r"[a-z][a-z0-9_\-]*(\.\d+)?")
-_LOOP = re.compile(r"(while|conditional)\b")
-
-
 def _kernels_unavailable() -> str:
     """Why `--kernels` cannot run here, or '' (checked before any work)."""
     if jax.devices()[0].platform != "cpu":
@@ -171,24 +162,22 @@ def _kernels_unavailable() -> str:
 
 
 def kernel_profile(b: int, reps: int, terrain: str, top: int = 15):
+    from profile_grad import kernel_events  # the script beside this one: its reader of the profiler's trace
     _, _, _, m_b, in_axes, d = _settled(b, terrain)
     f = jax.jit(jax.vmap(lambda m, d: jax.lax.scan(lambda dd, _: (mjx.step(m, dd), None), d, None, length=reps)[0],
                          in_axes=(in_axes, 0)))
-    step_s = _time(f, m_b, d) / reps
+    compiled = f.lower(m_b, d).compile()
+    module = re.search(r"HloModule\s+([\w.\-]+)", compiled.as_text()).group(1)
+    step_s = _time(compiled, m_b, d) / reps
     with tempfile.TemporaryDirectory() as tmp:
-        jax.profiler.start_trace(tmp, create_perfetto_trace=True)
-        jax.block_until_ready(f(m_b, d))
-        jax.profiler.stop_trace()
-        (path,) = glob.glob(f"{tmp}/**/*.trace.json.gz", recursive=True)
-        with gzip.open(path) as fh:
-            events = json.load(fh)
-    events = events["traceEvents"] if isinstance(events, dict) else events
-    kernels = [e for e in events if e.get("ph") == "X" and _KERNEL.fullmatch(e["name"]) and not _LOOP.match(e["name"])]
+        with jax.profiler.trace(tmp, create_perfetto_trace=True):
+            jax.block_until_ready(compiled(m_b, d))
+        kernels = kernel_events(tmp, module)
     if not kernels:
         raise SystemExit("--kernels: the profile holds no kernel events (was XLA_FLAGS set before jax started?)")
     us, count = collections.Counter(), collections.Counter()
     for e in kernels:
-        name = re.sub(r"\.\d+$", "", e["name"])
+        name = re.sub(r"\.\d+$", "", e["args"]["hlo_op"])
         us[name] += e["dur"]
         count[name] += 1
     total = sum(us.values())
