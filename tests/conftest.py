@@ -29,8 +29,8 @@ import pytest  # noqa: E402
 from hexjax.cache import TRACE_GC_THRESHOLD  # noqa: E402
 
 # Python's collector runs rarely in the whole test process, not only where `hexjax.sim.compiled` traces a kept
-# program: tests also trace gradients, Brax's PPO and jitted helpers of their own. Each module ends with a full
-# collection (`_free_compiled_rollouts`), so nothing piles up across the run.
+# program: tests also trace gradients, Brax's PPO and jitted helpers of their own. Each module ends with a
+# collection of what it made (`_free_compiled_rollouts`), so nothing piles up across the run.
 gc.set_threshold(*TRACE_GC_THRESHOLD)
 
 _PEAKS = []
@@ -130,7 +130,12 @@ def _free_compiled_rollouts():
     the same program again loads it from the persistent compilation cache (`hexjax.cache`).
     JAX's own caches go too, but only once the process holds more than `_CLEAR_ABOVE_GIB`: they also hold the
     small programs of eager operations (one per operation and shape), and clearing them after every module made
-    each module compile its eager operations again (half of a warm run's 7,260 compiles, about 80 s of CPU)."""
+    each module compile its eager operations again (half of a warm run's 7,260 compiles, about 80 s of CPU).
+    What survives the collection is frozen (`gc.freeze`), so the next module's collection walks only the objects
+    made since. Walking every object of a worker (JAX, MJX, Brax and their caches) took 0.9 s at the first module's
+    end and up to 2.5 s later: 121 s of CPU over the 76 module ends of a warm run on 2 cores, 7 s frozen
+    (docs/benchmarks.md, 2026-11-28, thirteenth session). A frozen object that later becomes garbage in a cycle
+    (an entry JAX's caches drop) is kept until the memory bound below unfreezes everything for a full collection."""
     yield
     import gc
     import sys
@@ -140,8 +145,10 @@ def _free_compiled_rollouts():
     gc.collect()
     if _rss_gib() > _CLEAR_ABOVE_GIB:
         import jax
+        gc.unfreeze()
         jax.clear_caches()
         gc.collect()
+    gc.freeze()
 
 
 # Compile time per test, from JAX's monitoring events: tracing, lowering and the backend compile (or the load of
