@@ -64,6 +64,13 @@ def _repeated(step, carry, reps: int):
     return jax.lax.scan(body, carry, jnp.arange(reps))[0]
 
 
+def _stepped(in_axes, n: int):
+    """`mjx.step` applied `n` times to each env's state in a `lax.scan`, vmapped over the batch (the model's
+    batched fields along `in_axes`)."""
+    return jax.vmap(lambda m, d: jax.lax.scan(lambda dd, _: (mjx.step(m, dd), None), d, None, length=n)[0],
+                    in_axes=(in_axes, 0))
+
+
 def _settled(b: int, terrain: str):
     """The Luneckas 2020 robot on `b` draws of `terrain`, settled 0.5 s in its stance so that the feet carry the
     weight, as in a real step: (spec, sim model, terrain batch, batched model, its vmap axes, data)."""
@@ -72,15 +79,7 @@ def _settled(b: int, terrain: str):
     terr = sample(get_terrain(terrain), jax.random.PRNGKey(0), b)
     m_b, in_axes = batch_model(sm, terr)
     d = jax.jit(jax.vmap(lambda _: sm.init_data(jnp.zeros(3))))(jnp.arange(b))
-
-    @jax.jit
-    def settle(m, d):
-        def one(m, d):
-            return jax.lax.scan(lambda dd, _: (mjx.step(m, dd), None), d, None, length=100)[0]
-        return jax.vmap(one, in_axes=(in_axes, 0))(m, d)
-
-    d = settle(m_b, d)
-    jax.block_until_ready(d)
+    d = jax.block_until_ready(jax.jit(_stepped(in_axes, 100))(m_b, d))
     return spec, sm, terr, m_b, in_axes, d
 
 
@@ -164,9 +163,7 @@ def _kernels_unavailable() -> str:
 def kernel_profile(b: int, reps: int, terrain: str, top: int = 15):
     from profile_grad import kernel_events  # the script beside this one: its reader of the profiler's trace
     _, _, _, m_b, in_axes, d = _settled(b, terrain)
-    f = jax.jit(jax.vmap(lambda m, d: jax.lax.scan(lambda dd, _: (mjx.step(m, dd), None), d, None, length=reps)[0],
-                         in_axes=(in_axes, 0)))
-    compiled = f.lower(m_b, d).compile()
+    compiled = jax.jit(_stepped(in_axes, reps)).lower(m_b, d).compile()
     module = re.search(r"HloModule\s+([\w.\-]+)", compiled.as_text()).group(1)
     step_s = _time(compiled, m_b, d) / reps
     with tempfile.TemporaryDirectory() as tmp:
