@@ -137,7 +137,6 @@ def _free_compiled_rollouts():
     (docs/benchmarks.md, 2026-11-28, thirteenth session). A frozen object that later becomes garbage in a cycle
     (an entry JAX's caches drop) is kept until the memory bound below unfreezes everything for a full collection."""
     yield
-    import gc
     import sys
 
     if "hexjax.sim.rollout" in sys.modules:
