@@ -6,6 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from hexjax.cache import cache_dir
 from hexjax.control.base import Controller
 from hexjax.control.gait import GaitController
 from hexjax.experiments.metrics import goal_errors
@@ -91,6 +92,13 @@ def test_sharded_rollout_matches_unsharded():
     (exe,) = fn.executables.values()
     hlo = exe.as_text()
     assert "while" in hlo and not re.search(r"\b(all-reduce|all-gather|collective-permute|all-to-all)", hlo)
+    # kept on disk as a one-device program is: a new `Compiled`, as in a later process, loads it instead of
+    # tracing it (the sharded program is partitioned by Shardy, which can call an exported program back)
+    if cache_dir() is not None:
+        _compiled.cache_clear()
+        again, st = rollout(spec, terr, c, p, 1.0, jax.random.PRNGKey(5), physics=FLAT, mesh=mesh, stats=True)
+        assert st.compiled == "disk"
+        np.testing.assert_array_equal(np.asarray(again.end_pose), np.asarray(b.end_pose))
 
 
 def test_contact_map_matches_mjx_forward():

@@ -12,7 +12,17 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from hexjax.rl.env import HexapodGoalEnv
-from hexjax.sim.rollout import gspmd
+
+
+def _gspmd():
+    """Context in which JAX partitions programs over several devices with GSPMD instead of Shardy. Brax's PPO
+    runs its `pmap` as a `shard_map` in JAX 0.11, and jaxlib 0.11.2's Shardy pass segfaults compiling it, in a
+    canonicalisation pattern for the manual computation's unused inputs (`ManualComputationUnusedInputsPattern`,
+    gdb): an empty array among the inputs crashes it (a (0, 3) array summed inside a 2-device `shard_map` on the
+    CPU does). GSPMD compiles it. (The sharded rollout keeps empty arrays out of its manual computation instead:
+    `hexjax.sim.rollout._shard_map_without_empty_arrays`.)"""
+    from jax._src import config as jax_config  # the setting's context manager; jax.config has only `update`
+    return jax_config.use_shardy_partitioner(False)
 
 
 def _device_put_replicated(x, devices):
@@ -66,7 +76,7 @@ def train_ppo(env: HexapodGoalEnv, num_timesteps: int = 60_000, num_envs: int = 
               learning_rate=3e-4, entropy_cost=1e-3, discounting=0.97, normalize_observations=True,
               num_eval_envs=num_envs, seed=seed, progress_fn=on_progress)
     kw.update(ppo_kwargs)
-    with gspmd():  # brax's pmap over the local devices is a shard_map in jax 0.11 (`gspmd`)
+    with _gspmd():  # brax's pmap over the local devices is a shard_map in jax 0.11
         make_policy, params, _ = ppo.train(environment=env, **kw)
     return history, make_policy, params
 

@@ -122,6 +122,20 @@ def fresh_trace() -> None:
         jax.clear_caches()
 
 
+class _FlatExecutable:
+    """A kept program's executable, called with the arguments' tree and giving the outputs' tree; `as_text()`:
+    the compiled program (as a compiled jitted function's)."""
+
+    def __init__(self, exe, out_tree):
+        self.exe, self.out_tree = exe, out_tree
+
+    def __call__(self, *args):
+        return jax.tree_util.tree_unflatten(self.out_tree, self.exe(*jax.tree_util.tree_leaves(args)))
+
+    def as_text(self) -> str:
+        return self.exe.as_text()
+
+
 class Compiled:
     """A jitted function compiled ahead of time per input signature. `call(*args)` returns (outputs,
     CompileStats); calling the object returns the outputs alone. `static`: the hashable settings the
@@ -131,8 +145,9 @@ class Compiled:
     A kept program is the function exported (`jax.export`) over its flattened arguments, with the tree of its
     outputs: loading it skips tracing and lowering, and its XLA compile is a hit in JAX's persistent cache.
     (A serialised XLA executable would skip even that, but on the CPU one that calls LAPACK, as MJX's solver
-    does, crashes when loaded in another process.) Programs that do not export (host callbacks, MuJoCo Warp's
-    kernels, several devices) are compiled as before."""
+    does, crashes when loaded in another process.) A program over several devices, or several processes
+    (`jax.distributed`), is kept too: it is exported and called back under Shardy, JAX's default partitioner.
+    Programs that do not export (host callbacks, MuJoCo Warp's kernels) are compiled as before."""
 
     def __init__(self, jitted, static=None):
         self.jitted = jitted
@@ -152,8 +167,7 @@ class Compiled:
 
     @staticmethod
     def _flat_executable(exported, out_tree, leaves):
-        exe = jax.jit(exported.call).lower(*leaves).compile()
-        return lambda *args: jax.tree_util.tree_unflatten(out_tree, exe(*jax.tree_util.tree_leaves(args)))
+        return _FlatExecutable(jax.jit(exported.call).lower(*leaves).compile(), out_tree)
 
     def _load(self, path: Path, leaves):
         try:
@@ -166,12 +180,6 @@ class Compiled:
     def _export(self, path: Path, args, leaves, in_tree):
         """Export the function over flat arguments, keep it at `path`, and return its executable (None when it
         does not export)."""
-        # a rollout over several devices is partitioned with GSPMD (`hexjax.sim.rollout.gspmd`: Shardy crashes on
-        # it), and jax 0.11.2 cannot call an export back under GSPMD: MLIR's verifier refuses the Shardy attribute
-        # that the call's lowering puts on a `Sharding` custom call (docs/benchmarks.md 2026-11-28, third session).
-        # So such a program is traced afresh in every process
-        if any(len(x.sharding.device_set) > 1 for x in leaves if hasattr(x, "sharding")):
-            return None
         out = {}
 
         def flat(*ls):

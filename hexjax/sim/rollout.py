@@ -12,6 +12,7 @@ import time
 from typing import Optional
 
 import jax
+import jax.extend
 import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding
@@ -102,8 +103,7 @@ def _compiled(robot: RobotSpec, physics: PhysicsConfig, sensors: SensorConfig, c
         def sharded(m_shared, params, terrain, keys, d_template=None, pert=None):
             def local(m, p, t, k, pe):  # MJX only: no data template
                 return batched(m, p, t, k, None, pe)
-            return jax.shard_map(local, mesh=mesh, in_specs=specs, out_specs=env, check_vma=False)(
-                m_shared, params, terrain, keys, pert)
+            return _shard_map_without_empty_arrays(local, mesh, specs, env, (m_shared, params, terrain, keys, pert))
 
     # a program with host callbacks (progress) or MuJoCo Warp's kernels does not export: keep none of it
     keep = impl == "jax" and not cfg.progress_every
@@ -113,6 +113,33 @@ def _compiled(robot: RobotSpec, physics: PhysicsConfig, sensors: SensorConfig, c
     if keep and mesh is not None:
         static += (mesh,)
     return sm, Compiled(jax.jit(batched if mesh is None else sharded), static=static)
+
+
+def _shard_map_without_empty_arrays(f, mesh: Mesh, specs, out_specs, args):
+    """`jax.shard_map(f, ...)(*args)` with no empty array among the manual computation's inputs.
+
+    Such inputs are the empty arrays among `args` (MJX's model holds some: no tendons, no equality constraints)
+    and those `f` closes over, which `shard_map` passes in as well; jaxlib 0.11.2's Shardy pass segfaults on an
+    empty input (`ManualComputationUnusedInputsPattern`). So `f` is traced once to a jaxpr at one device's
+    shapes and evaluated inside the `shard_map` with every empty argument and constant made there as `jnp.zeros`
+    of its shape, which Shardy compiles. The values are the same: an empty array holds none."""
+    n_dev = mesh.shape["batch"]
+    leaves, tree = jax.tree_util.tree_flatten(args)
+    leaf_specs = [s for a, s in zip(args, specs) for _ in jax.tree_util.tree_leaves(a)]
+    local = [((x.shape[0] // n_dev,) if s == P("batch") else tuple(x.shape[:1])) + tuple(x.shape[1:])
+             for x, s in zip(leaves, leaf_specs)]
+    closed, out_shape = jax.make_jaxpr(lambda *ls: f(*jax.tree_util.tree_unflatten(tree, ls)), return_shape=True)(
+        *(jax.ShapeDtypeStruct(sh, x.dtype) for sh, x in zip(local, leaves)))
+    full = [i for i, x in enumerate(leaves) if np.size(x)]
+
+    def g(*xs):
+        it = iter(xs)
+        ins = [next(it) if np.size(x) else jnp.zeros(sh, x.dtype) for x, sh in zip(leaves, local)]
+        consts = [c if np.size(c) else jnp.zeros(np.shape(c), c.dtype) for c in closed.consts]
+        out = jax.extend.core.jaxpr_as_fun(jax.extend.core.ClosedJaxpr(closed.jaxpr, consts))(*ins)
+        return jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(out_shape), out)
+    return jax.shard_map(g, mesh=mesh, in_specs=tuple(leaf_specs[i] for i in full), out_specs=out_specs,
+                         check_vma=False)(*(leaves[i] for i in full))
 
 
 @contextlib.contextmanager
@@ -222,8 +249,7 @@ def rollout(robot: RobotSpec, terrain: Terrain, controller: Controller, params, 
         args = (model, params, terrain, keys) + ((sm.make_data(b),) if impl == "warp" else ())
         if perturbed:  # after the data template (warp's, or None)
             args += ((perturbation,) if impl == "warp" else (None, perturbation))
-        with gspmd() if mesh is not None else contextlib.nullcontext():
-            out, cs = fn.call(*args)
+        out, cs = fn.call(*args)
         compile_s, compiled = cs.compile_s, cs.source
         if mesh is not None and jax.process_count() > 1:  # every process gets the whole batch's summary
             from jax.experimental import multihost_utils
@@ -251,17 +277,6 @@ def rollout_function(robot: RobotSpec, controller: Controller, duration: float, 
     n_ctrl = check_static(robot, controller, duration, physics, config)
     sm, fn = _compiled(robot, physics, sensors, controller, config, n_ctrl, params_batched, "jax", perturbed)
     return sm.mjx_model, (fn if kept else fn.jitted)
-
-
-def gspmd():
-    """Context in which JAX partitions programs over several devices with GSPMD instead of Shardy. jaxlib 0.11.2's
-    Shardy pass segfaults compiling the sharded rollout, and Brax's PPO (whose `pmap` JAX 0.11 runs as a
-    `shard_map`), in a canonicalisation pattern for the manual computation's unused inputs
-    (`ManualComputationUnusedInputsPattern`, gdb); a (0, 3) array summed inside a 2-device `shard_map` on the
-    CPU crashes the same way. GSPMD compiles both, and the sharded rollout's program still holds no collective
-    (tests/test_rollout.py)."""
-    from jax._src import config as jax_config  # the setting's context manager; jax.config has only `update`
-    return jax_config.use_shardy_partitioner(False)
 
 
 def check_perturbation(perturbation, b: int):
