@@ -123,18 +123,16 @@ def _shard_map_without_empty_arrays(f, mesh: Mesh, specs, out_specs, args):
     empty input (`ManualComputationUnusedInputsPattern`). So `f` is traced once to a jaxpr at one device's
     shapes and evaluated inside the `shard_map` with every empty argument and constant made there as `jnp.zeros`
     of its shape, which Shardy compiles. The values are the same: an empty array holds none."""
-    n_dev = mesh.shape["batch"]
     leaves, tree = jax.tree_util.tree_flatten(args)
     leaf_specs = [s for a, s in zip(args, specs) for _ in jax.tree_util.tree_leaves(a)]
-    local = [((x.shape[0] // n_dev,) if s == P("batch") else tuple(x.shape[:1])) + tuple(x.shape[1:])
-             for x, s in zip(leaves, leaf_specs)]
+    local = [NamedSharding(mesh, s).shard_shape(x.shape) for x, s in zip(leaves, leaf_specs)]
     closed, out_shape = jax.make_jaxpr(lambda *ls: f(*jax.tree_util.tree_unflatten(tree, ls)), return_shape=True)(
         *(jax.ShapeDtypeStruct(sh, x.dtype) for sh, x in zip(local, leaves)))
     full = [i for i, x in enumerate(leaves) if np.size(x)]
 
     def g(*xs):
-        it = iter(xs)
-        ins = [next(it) if np.size(x) else jnp.zeros(sh, x.dtype) for x, sh in zip(leaves, local)]
+        given = dict(zip(full, xs))
+        ins = [given[i] if i in given else jnp.zeros(sh, x.dtype) for i, (x, sh) in enumerate(zip(leaves, local))]
         consts = [c if np.size(c) else jnp.zeros(np.shape(c), c.dtype) for c in closed.consts]
         out = jax.extend.core.jaxpr_as_fun(jax.extend.core.ClosedJaxpr(closed.jaxpr, consts))(*ins)
         return jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(out_shape), out)
