@@ -35,7 +35,7 @@ def standing():
     d = sm.init_data(jnp.zeros(3))
     ctrl0 = jnp.asarray(sm.ctrl0)
     d = d.replace(ctrl=ctrl0, qpos=d.qpos.at[7:].set(ctrl0))
-    d = jax.jit(lambda d: jax.lax.fori_loop(0, 100, lambda i, x: mjx.step(m, x), d))(d)
+    d = _kept(lambda d: jax.lax.fori_loop(0, 100, lambda i, x: mjx.step(m, x), d), d, "stand100", "mjx")(d)
     assert int(jnp.sum(d._impl.efc_force != 0)) >= 6, "expected the feet in contact"
     return m, d
 
@@ -54,10 +54,11 @@ def _walk(m, d, k: int):
 
 
 def _kept(fn, d, *tag):
-    """jax.jit(fn) kept on disk (`hexjax.sim.compiled.Compiled`) under `tag` (test, solver mode) and the standing
-    state: a warm run loads it instead of tracing it again (20-60 s a program on 2 cores). Pass a fresh `fn` per
-    solver mode: `jax.jit` reuses the trace of a function it has traced before, whatever solver patch is open."""
-    return Compiled(jax.jit(fn), static=("test_implicit",) + tag + (ITERATIONS, arrays_digest(d)))
+    """jax.jit(fn) kept on disk (`hexjax.sim.compiled.Compiled`) under `tag` (test, solver mode), the robot (its
+    preset is a YAML file, which the key's hash of hexjax's sources does not cover) and the standing state: a warm
+    run loads it instead of tracing it again (20-60 s a program on 2 cores). Pass a fresh `fn` per solver mode:
+    `jax.jit` reuses the trace of a function it has traced before, whatever solver patch is open."""
+    return Compiled(jax.jit(fn), static=("test_implicit",) + tag + (ITERATIONS, luneckas2020(), arrays_digest(d)))
 
 
 def test_converged_jacobian_matches_unrolled_and_central_differences(standing):
@@ -277,13 +278,16 @@ def test_integrator_rule_keeps_mjx_values_and_derivative(standing):
 
     args = (d._impl.M, d.qfrc_constraint, d.qvel)
     assert float(jnp.abs(d.qfrc_constraint).max()) > 0.1, "expected contact forces"
-    np.testing.assert_array_equal(jax.jit(integrate(ruled))(*args), jax.jit(integrate(mjx_implicit))(*args))
+    # kept on disk (`_kept`), as every MJX program of this module: as plain `jax.jit`s their persistent-cache keys
+    # can change with what the worker traced before
+    kept = lambda fn, *tag: _kept(fn, d, "integrator", *tag)  # noqa: E731
+    np.testing.assert_array_equal(kept(integrate(ruled), "rule")(*args), kept(integrate(mjx_implicit), "mjx")(*args))
     # the mass matrix moves only symmetrically: compare the Jacobian on symmetric directions, (J + J^T) / 2 in M's
     # two axes (single entries are a convention of each rule: the factor reads one triangle)
     sym = lambda j: 0.5 * (j + jnp.swapaxes(j, -1, -2))  # noqa: E731
     for jac in (jax.jacrev, jax.jacfwd):
-        got = jax.jit(jac(integrate(ruled), argnums=(0, 1, 2)))(*args)
-        want = jax.jit(jac(integrate(mjx_implicit), argnums=(0, 1, 2)))(*args)
+        got = kept(jac(integrate(ruled), argnums=(0, 1, 2)), jac.__name__, "rule")(*args)
+        want = kept(jac(integrate(mjx_implicit), argnums=(0, 1, 2)), jac.__name__, "mjx")(*args)
         for k, (g, w) in enumerate(zip(got, want)):
             g, w = (sym(g), sym(w)) if k == 0 else (g, w)
             assert float(jnp.abs(w).max()) > 1e-4

@@ -10,6 +10,7 @@ from hexjax.cache import cache_dir
 from hexjax.control.base import Controller
 from hexjax.control.gait import GaitController
 from hexjax.experiments.metrics import goal_errors
+from hexjax.sim.compiled import Compiled
 from hexjax.sim.config import PhysicsConfig, RolloutConfig, SensorConfig
 from hexjax.sim.model import SimModel, contact_geoms, mjx
 from hexjax.sim.rollout import _compiled, make_mesh, rollout
@@ -104,7 +105,9 @@ def test_sharded_rollout_matches_unsharded():
 def test_contact_map_matches_mjx_forward():
     sm = SimModel(luneckas2020(), PhysicsConfig(slots_per_leg=1, torso_slots=1))
     d = mjx.make_data(sm.mj_model)
-    ref = np.asarray(jax.jit(mjx.forward)(sm.mjx_model, d)._impl.contact.geom)
+    # kept on disk: a plain `jax.jit`'s persistent-cache key can change with what the worker traced before
+    fwd = Compiled(jax.jit(mjx.forward), static=("test_rollout/forward", sm.robot, sm.physics))
+    ref = np.asarray(fwd(sm.mjx_model, d)._impl.contact.geom)
     np.testing.assert_array_equal(contact_geoms(sm.mjx_model, d), ref)
 
 
