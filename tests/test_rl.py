@@ -14,9 +14,11 @@ def test_env_zero_policy_walks_the_gait_towards_the_goal():
     settings = dict(terrain="flat")
     env = HexapodGoalEnv(**settings)
     # reset and step kept on disk (hexjax.sim.compiled), keyed by the settings the env was made from (its defaults
-    # are hexjax's source, which the key holds too): as a plain jax.jit the step's persistent-cache key changed
-    # with what the worker ran before, and some warm runs compiled it again (7-11 s)
-    kept = lambda fn, tag: Compiled(jax.jit(jax.vmap(fn)), static=("test_rl/" + tag, tuple(sorted(settings.items()))))
+    # are hexjax's source, which the key holds too) and the robot and terrain specs (their presets are YAML files,
+    # which it does not): as a plain jax.jit the step's persistent-cache key changed with what the worker ran
+    # before, and some warm runs compiled it again (7-11 s)
+    key = (tuple(sorted(settings.items())), env.robot, env.tspec)
+    kept = lambda fn, tag: Compiled(jax.jit(jax.vmap(fn)), static=("test_rl/" + tag,) + key)
     reset, step = kept(env.reset, "env_reset"), kept(env.step, "env_step")
     s = reset(jax.random.split(jax.random.PRNGKey(0), 3))
     assert s.obs.shape == (3, env.observation_size) and env.action_size == 18
