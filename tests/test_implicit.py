@@ -24,13 +24,14 @@ from hexjax.sim.rollout import rollout_function
 from hexjax.world.presets import luneckas2020
 
 ITERATIONS = 30  # enough Newton iterations for the solve to converge on every step below
+ROBOT = luneckas2020()  # the standing fixture's robot, and part of every kept program's key (`_kept`)
 
 
 @pytest.fixture(scope="module")
 def standing():
     """(model, data) of the Luneckas 2020 robot after 0.5 s standing on flat ground: six feet in contact."""
     phys = dataclasses.replace(physics_for("flat"), iterations=ITERATIONS)
-    sm = sim_model(luneckas2020(), phys)
+    sm = sim_model(ROBOT, phys)
     m = sm.mjx_model
     d = sm.init_data(jnp.zeros(3))
     ctrl0 = jnp.asarray(sm.ctrl0)
@@ -54,11 +55,11 @@ def _walk(m, d, k: int):
 
 
 def _kept(fn, d, *tag):
-    """jax.jit(fn) kept on disk (`hexjax.sim.compiled.Compiled`) under `tag` (test, solver mode), the robot (its
-    preset is a YAML file, which the key's hash of hexjax's sources does not cover) and the standing state: a warm
-    run loads it instead of tracing it again (20-60 s a program on 2 cores). Pass a fresh `fn` per solver mode:
-    `jax.jit` reuses the trace of a function it has traced before, whatever solver patch is open."""
-    return Compiled(jax.jit(fn), static=("test_implicit",) + tag + (ITERATIONS, luneckas2020(), arrays_digest(d)))
+    """jax.jit(fn) kept on disk (`hexjax.sim.compiled.Compiled`) under `tag` (test, solver mode), the standing
+    fixture's robot (its preset is a YAML file, which the key's hash of hexjax's sources does not cover) and
+    state: a warm run loads it instead of tracing it again (20-60 s a program on 2 cores). Pass a fresh `fn` per
+    solver mode: `jax.jit` reuses the trace of a function it has traced before, whatever solver patch is open."""
+    return Compiled(jax.jit(fn), static=("test_implicit",) + tag + (ITERATIONS, ROBOT, arrays_digest(d)))
 
 
 def test_converged_jacobian_matches_unrolled_and_central_differences(standing):
