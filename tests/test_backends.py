@@ -90,6 +90,34 @@ def test_warp_backend_walks_like_mjx(mjx_run):
             np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
 
 
+def test_warp_cpu_hessian_launch_keeps_the_elliptic_walk():
+    """On a CPU, hexjax launches MuJoCo Warp's elliptic-cone Hessian kernel with one thread per matrix element
+    looping over the contacts (`hexjax.sim.backends.warp_cpu`): a 1 s walk of 2 envs on the elliptic cone is the
+    same bit for bit with and without it (and the replay). The kernel matters to this walk: with its launch
+    skipped the end poses moved by 9.5e-6 m (checked once, 2026-11-29)."""
+    if os.environ.get("HEXJAX_REQUIRE_WARP"):
+        import warp  # noqa: F401
+    else:
+        pytest.importorskip("warp")
+    if jax.default_backend() != "cpu":
+        pytest.skip("the launch is reshaped on a CPU only")
+    from hexjax.sim.backends import warp_cpu
+    terr = jax.tree_util.tree_map(lambda x: x[:2], TERRAIN)
+    walk = lambda: jax.block_until_ready(rollout(ROBOT, terr, CTRL, CTRL.default_params(), 1.0, jax.random.PRNGKey(1),
+                                                 physics=PhysicsConfig(cone="elliptic"), backend="warp"))
+    before = warp_cpu.STATS["hessian"]
+    out = walk()
+    assert warp_cpu.STATS["hessian"] > before, "the Hessian's launch was not reshaped"
+    was = warp_cpu.set_enabled(False)
+    try:
+        plain = walk()
+    finally:
+        warp_cpu.set_enabled(was)
+    assert not np.asarray(out.nan).any() and np.asarray(out.travel)[:, 0].min() > 0.005
+    for x, y in zip(jax.tree_util.tree_leaves(out), jax.tree_util.tree_leaves(plain)):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
 def test_contact_sensors_read_the_forces_mujoco_reports():
     """The sensor block decoded by obs_from_sensordata equals mj_contactForce summed per foot / pad."""
     phys = PhysicsConfig(slots_per_leg=0, torso_slots=0)
