@@ -90,32 +90,47 @@ def test_warp_backend_walks_like_mjx(mjx_run):
             np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
 
 
-def test_warp_cpu_hessian_launch_keeps_the_elliptic_walk():
+def test_warp_cpu_hessian_launch_gives_the_same_steps():
     """On a CPU, hexjax launches MuJoCo Warp's elliptic-cone Hessian kernel with one thread per matrix element
-    looping over the contacts (`hexjax.sim.backends.warp_cpu`): a 1 s walk of 2 envs on the elliptic cone is the
-    same bit for bit with and without it (and the replay). The kernel matters to this walk: with its launch
-    skipped the end poses moved by 9.5e-6 m (checked once, 2026-11-29)."""
+    looping over the contacts (`hexjax.sim.backends.warp_cpu`). 60 MuJoCo Warp steps of 2 worlds, the robot
+    standing on the elliptic cone with its joints driven 0.3 rad off the stance so that the feet slip, give the
+    same state bit for bit with and without it. The kernel matters here: with its launch skipped the joints ended
+    up to 1.2e-3 rad elsewhere (checked once, 2026-11-29)."""
     if os.environ.get("HEXJAX_REQUIRE_WARP"):
         import warp  # noqa: F401
     else:
         pytest.importorskip("warp")
-    if jax.default_backend() != "cpu":
-        pytest.skip("the launch is reshaped on a CPU only")
+    import warp as wp
+    from mujoco.mjx.third_party import mujoco_warp as mjw
+
     from hexjax.sim.backends import warp_cpu
-    terr = jax.tree_util.tree_map(lambda x: x[:2], TERRAIN)
-    walk = lambda: jax.block_until_ready(rollout(ROBOT, terr, CTRL, CTRL.default_params(), 1.0, jax.random.PRNGKey(1),
-                                                 physics=PhysicsConfig(cone="elliptic"), backend="warp"))
+    m = mujoco.MjModel.from_xml_string(build_mjcf(ROBOT, PhysicsConfig(cone="elliptic"), contact_sensors=True))
+    d = mujoco.MjData(m)
+    mujoco.mj_resetDataKeyframe(m, d, 0)
+    for _ in range(100):  # settle onto the feet (MuJoCo C)
+        mujoco.mj_step(m, d)
+    assert d.ncon == 6
+    d.ctrl[:] += 0.3
+    assert warp_cpu.enable(), "the pinned Warp version gets hexjax's CPU changes"
+
+    def steps(on):
+        was = warp_cpu.set_enabled(on)
+        try:
+            with wp.ScopedDevice("cpu"):
+                mw, dw = mjw.put_model(m), mjw.put_data(m, d, nworld=2, nconmax=2 * 54, njmax=180)
+                for _ in range(60):
+                    mjw.step(mw, dw)
+                return {k: getattr(dw, k).numpy().copy() for k in ("qpos", "qvel", "qacc", "qfrc_constraint")}
+        finally:
+            warp_cpu.set_enabled(was)
+
     before = warp_cpu.STATS["hessian"]
-    out = walk()
-    assert warp_cpu.STATS["hessian"] > before, "the Hessian's launch was not reshaped"
-    was = warp_cpu.set_enabled(False)
-    try:
-        plain = walk()
-    finally:
-        warp_cpu.set_enabled(was)
-    assert not np.asarray(out.nan).any() and np.asarray(out.travel)[:, 0].min() > 0.005
-    for x, y in zip(jax.tree_util.tree_leaves(out), jax.tree_util.tree_leaves(plain)):
-        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    new = steps(True)
+    assert warp_cpu.STATS["hessian"] >= before + 60, "the Hessian's launch was not reshaped at every step"
+    plain = steps(False)
+    assert np.abs(new["qpos"] - d.qpos).max() > 0.1  # the joints moved
+    for k in new:
+        np.testing.assert_array_equal(new[k], plain[k], err_msg=k)
 
 
 def test_contact_sensors_read_the_forces_mujoco_reports():
