@@ -94,8 +94,8 @@ def test_warp_cpu_hessian_launch_gives_the_same_steps():
     """On a CPU, hexjax launches MuJoCo Warp's elliptic-cone Hessian kernel with one thread per matrix element
     looping over the contacts (`hexjax.sim.backends.warp_cpu`). 60 MuJoCo Warp steps of 2 worlds, the robot
     standing on the elliptic cone with its joints driven 0.3 rad off the stance so that the feet slip, give the
-    same state bit for bit with and without it. The kernel matters here: with its launch skipped the joints ended
-    up to 1.2e-3 rad elsewhere (checked once, 2026-11-29)."""
+    same state bit for bit with and without it. The kernel matters here: with its launch skipped `qpos` ended up
+    to 1.2e-3 elsewhere, and with only the first 3 contacts summed the test failed (both checked once, 2026-11-29)."""
     if os.environ.get("HEXJAX_REQUIRE_WARP"):
         import warp  # noqa: F401
     else:
@@ -117,7 +117,7 @@ def test_warp_cpu_hessian_launch_gives_the_same_steps():
         was = warp_cpu.set_enabled(on)
         try:
             with wp.ScopedDevice("cpu"):
-                mw, dw = mjw.put_model(m), mjw.put_data(m, d, nworld=2, nconmax=2 * 54, njmax=180)
+                mw, dw = mjw.put_model(m), mjw.put_data(m, d, nworld=2, naconmax=2 * 54, njmax=180)
                 for _ in range(60):
                     mjw.step(mw, dw)
                 return {k: getattr(dw, k).numpy().copy() for k in ("qpos", "qvel", "qacc", "qfrc_constraint")}
