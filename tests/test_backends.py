@@ -64,11 +64,17 @@ def test_mujoco_c_ground_plane_sits_at_the_terrains_ground_z():
     assert 0.03 < h[0] < 0.15 and abs(h[1] - h[0]) < 0.005, h
 
 
+def _warp():
+    """The warp module, or a skip without warp-lang; under HEXJAX_REQUIRE_WARP (`make test`, and so CI, whose test
+    extra installs warp-lang) its absence fails instead."""
+    if os.environ.get("HEXJAX_REQUIRE_WARP"):
+        import warp
+        return warp
+    return pytest.importorskip("warp")
+
+
 def test_warp_backend_walks_like_mjx(mjx_run):
-    if os.environ.get("HEXJAX_REQUIRE_WARP"):  # `make test` (and so CI) installs warp-lang: its absence fails
-        import warp  # noqa: F401
-    else:
-        pytest.importorskip("warp")
+    _warp()
     from hexjax.sim.backends import warp_cpu
     recorded, replayed = warp_cpu.STATS["recorded"], warp_cpu.STATS["replayed"]
     walk = lambda: rollout(ROBOT, TERRAIN, CTRL, CTRL.default_params(), SECONDS, jax.random.PRNGKey(1), backend="warp")
@@ -96,11 +102,7 @@ def test_warp_cpu_hessian_launch_gives_the_same_steps():
     standing on the elliptic cone with its joints driven 0.3 rad off the stance so that the feet slip, give the
     same state bit for bit with and without it. The kernel matters here: with its launch skipped `qpos` ended up
     to 1.2e-3 elsewhere, and with only the first 3 contacts summed the test failed (both checked once, 2026-11-29)."""
-    if os.environ.get("HEXJAX_REQUIRE_WARP"):
-        import warp  # noqa: F401
-    else:
-        pytest.importorskip("warp")
-    import warp as wp
+    wp = _warp()
     from mujoco.mjx.third_party import mujoco_warp as mjw
 
     from hexjax.sim.backends import warp_cpu
