@@ -11,7 +11,7 @@ import pytest
 from hexjax.control.tactile import TactileGaitController
 from hexjax.sim.config import PhysicsConfig, RolloutConfig, SensorConfig
 from hexjax.sim.mjcf import build_mjcf, sensor_layout
-from hexjax.sim.model import obs_from_sensordata
+from hexjax.sim.model import obs_from_sensordata, sim_model
 from hexjax.sim.rollout import rollout
 from hexjax.world.presets import get_robot, get_terrain
 from hexjax.world.terrain import sample
@@ -106,7 +106,8 @@ def test_warp_cpu_hessian_launch_gives_the_same_steps():
     from mujoco.mjx.third_party import mujoco_warp as mjw
 
     from hexjax.sim.backends import warp_cpu
-    m = mujoco.MjModel.from_xml_string(build_mjcf(ROBOT, PhysicsConfig(cone="elliptic"), contact_sensors=True))
+    sm = sim_model(ROBOT, PhysicsConfig(cone="elliptic"), impl="warp")  # the model and pool sizes hexjax's walks use
+    m = sm.mj_model
     d = mujoco.MjData(m)
     mujoco.mj_resetDataKeyframe(m, d, 0)
     for _ in range(100):  # settle onto the feet (MuJoCo C)
@@ -119,7 +120,7 @@ def test_warp_cpu_hessian_launch_gives_the_same_steps():
         was = warp_cpu.set_enabled(on)
         try:
             with wp.ScopedDevice("cpu"):
-                mw, dw = mjw.put_model(m), mjw.put_data(m, d, nworld=2, naconmax=2 * 54, njmax=180)
+                mw, dw = mjw.put_model(m), mjw.put_data(m, d, nworld=2, naconmax=2 * sm.ncon, njmax=sm.nefc)
                 for _ in range(60):
                     mjw.step(mw, dw)
                 return {k: getattr(dw, k).numpy().copy() for k in ("qpos", "qvel", "qacc", "qfrc_constraint")}
