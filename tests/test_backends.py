@@ -120,7 +120,7 @@ def test_warp_cpu_hessian_launch_gives_the_same_steps():
         was = warp_cpu.set_enabled(on)
         try:
             with wp.ScopedDevice("cpu"):
-                mw, dw = mjw.put_model(m), mjw.put_data(m, d, nworld=2, naconmax=2 * sm.ncon, njmax=sm.nefc)
+                mw, dw = mjw.put_model(m), mjw.put_data(m, d, nworld=2, **sm.warp_pools(2))
                 for _ in range(60):
                     mjw.step(mw, dw)
                 return {k: getattr(dw, k).numpy().copy() for k in ("qpos", "qvel", "qacc", "qfrc_constraint")}

@@ -87,6 +87,11 @@ def test_cli_reports_bad_input_before_any_work(capsys, tmp_path):
     assert "--out=" in capsys.readouterr().err
     assert main(["experiment", "zhao2018", "--png", str(tmp_path / "plot.jpg")]) == 2
     assert "must end in .png" in capsys.readouterr().err
+    if sys.platform.startswith("linux"):  # /proc takes no new files, though `os.access` tells root it is writable
+        assert main(["evaluate", "--json", "/proc/hexjax.json"]) == 2  # checked before ~80 s of walking
+        assert "--json='/proc/hexjax.json': cannot write in its folder /proc" in capsys.readouterr().err
+        assert main(["tune", "--out", "/proc/hexjax-tune"]) == 2  # its checkpoints, before the first step
+        assert "--out='/proc/hexjax-tune': cannot make its folder" in capsys.readouterr().err
     # numbers out of their registry bounds fail as the arguments parse (argparse's exit 2), naming flag and value
     for argv, said in ((["evaluate", "--batch", "0"], "--batch: 0: must be >= 1"),
                        (["experiment", "luneckas2020", "--n", "0"], "--n: 0: must be >= 1"),

@@ -6,6 +6,7 @@ from __future__ import annotations
 import importlib
 import json
 import os
+import tempfile
 import types
 from typing import Any, Dict, List
 
@@ -13,21 +14,29 @@ from hexjax.experiments.registry import Entry
 from hexjax.world.files import resolve
 
 
+def check_folder(flag: str, value, folder: str) -> None:
+    """Make `folder` and write a file there and remove it, or raise one ValueError line naming `flag` and
+    `value`. A real write, because `os.access` tells root that /proc and similar folders are writable."""
+    try:
+        os.makedirs(folder, exist_ok=True)
+    except OSError as err:
+        raise ValueError(f"{flag}={value!r}: cannot make its folder ({err.strerror})") from None
+    try:
+        with tempfile.NamedTemporaryFile(dir=folder, prefix=".hexjax-probe-"):
+            pass
+    except OSError as err:
+        raise ValueError(f"{flag}={value!r}: cannot write in its folder {folder} ({err.strerror})") from None
+
+
 def check_options(entry: Entry, o: types.SimpleNamespace) -> None:
-    """Raise one ValueError line for an output path with the wrong suffix or in a folder that cannot be made,
-    or a preset name that does not resolve, before anything runs."""
+    """Raise one ValueError line for an output path with the wrong suffix or in a folder that cannot be made
+    or written, or a preset name that does not resolve, before anything runs."""
     for opt in entry.options:
         v = getattr(o, opt.name)
         if opt.output and v:
             if not str(v).lower().endswith(opt.output):
                 raise ValueError(f"{opt.flag}={v!r}: the file must end in {' or '.join(opt.output)}")
-            folder = os.path.dirname(os.path.abspath(v))
-            try:
-                os.makedirs(folder, exist_ok=True)
-            except OSError as err:
-                raise ValueError(f"{opt.flag}={v!r}: cannot make its folder ({err.strerror})") from None
-            if not os.access(folder, os.W_OK):
-                raise ValueError(f"{opt.flag}={v!r}: its folder {folder} is not writable")
+            check_folder(opt.flag, v, os.path.dirname(os.path.abspath(v)))
         if opt.preset and v:
             for name in (v if isinstance(v, list) else [v]):
                 resolve(opt.preset, name)

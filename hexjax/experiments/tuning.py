@@ -8,6 +8,7 @@ import os
 import time
 from typing import Dict, List
 
+from hexjax.experiments.runner import check_folder
 from hexjax.tune.config import load_tune_config
 from hexjax.world.files import resolve
 
@@ -46,10 +47,11 @@ def run(o, entry) -> Dict:
     cfg = load_tune_config(o.config, parse_sets(o.set), merge=True)
     # the tuners (MJX, the rollout) load only once the config has passed its checks: a bad --set answers in
     # about a second
+    out = o.out or os.path.join("out", "tune", resolve("tune", o.config).stem)
+    check_folder("--out", out, os.path.abspath(out))  # checkpoints go there from the first step on
     from hexjax.tune.driver import compare_plot
     from hexjax.tune.es import tune_es
     from hexjax.tune.grad import tune
-    out = o.out or os.path.join("out", "tune", resolve("tune", o.config).stem)
     limit = None if o.minutes is None else 60 * o.minutes
     print(f"tune {o.config} ({o.method}): {cfg.steps} steps of {cfg.train_batch} terrains ({cfg.distance:g} m "
           f"walks on {', '.join(cfg.terrains)}"

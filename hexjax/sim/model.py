@@ -143,9 +143,13 @@ class SimModel:
         """An empty mjx.Data. For 'warp' its contact pool is shared by the worlds of a vmap of size `batch`,
         so it is sized for all of them (the JAX implementation's fixed per-world contact count x batch)."""
         if self.impl == "warp":
-            return mjx.make_data(self.mj_model, impl="warp", naconmax=max(1, self.ncon) * batch,
-                                 njmax=max(1, self.nefc))
+            return mjx.make_data(self.mj_model, impl="warp", **self.warp_pools(batch))
         return mjx.make_data(self.mjx_model, device=jax.local_devices()[0])
+
+    def warp_pools(self, batch: int = 1) -> dict:
+        """MuJoCo Warp's pool sizes for `batch` worlds: contacts shared by all worlds (`naconmax`), constraint rows
+        per world (`njmax`), from the JAX implementation's fixed counts."""
+        return {"naconmax": max(1, self.ncon) * batch, "njmax": max(1, self.nefc)}
 
     def init_data(self, torso_xy_yaw, template=None):
         """mjx.Data in the neutral stance at (x, y, yaw) (3,) on flat ground (`template`: from `make_data`)."""
