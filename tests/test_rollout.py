@@ -129,3 +129,13 @@ def test_invalid_rollout_inputs_raise_before_tracing():
         rollout(spec, terr, c, p, 1.0, jax.random.PRNGKey(0), physics=PhysicsConfig(timestep=0.03))
     with pytest.raises(ValueError, match="derive it from hexjax.control.Controller"):
         rollout(spec, terr, object(), p, 1.0, jax.random.PRNGKey(0))
+    with pytest.raises(ValueError, match=r"key: got ArrayImpl of shape \(3,\)"):
+        rollout(spec, terr, c, p, 1.0, jnp.zeros(3))
+    with pytest.raises(ValueError, match=r"key: got int"):
+        rollout(spec, terr, c, p, 1.0, 0)
+    with pytest.raises(ValueError, match=r"params\.step_length: shape \(\); params_batched=True needs a leading "
+                                         r"axis of the terrain's 2 envs"):
+        rollout(spec, terr, c, p, 1.0, jax.random.PRNGKey(0), params_batched=True)
+    three = jax.tree_util.tree_map(lambda v: jnp.stack([v] * 3), p)
+    with pytest.raises(ValueError, match=r"shape \(3,\)"):
+        rollout(spec, terr, c, three, 1.0, jax.random.PRNGKey(0), params_batched=True)

@@ -216,6 +216,9 @@ def rollout(robot: RobotSpec, terrain: Terrain, controller: Controller, params, 
     b = int(terrain.box_pos.shape[0])
     if b < 1:
         raise ValueError(f"terrain batch size={b}: must be >= 1")
+    check_key(key)
+    if params_batched:
+        check_params_batch(params, b)
     controller.validate_params(params)
     perturbed = perturbation is not None
     if perturbed:
@@ -275,6 +278,25 @@ def rollout_function(robot: RobotSpec, controller: Controller, duration: float, 
     n_ctrl = check_static(robot, controller, duration, physics, config)
     sm, fn = _compiled(robot, physics, sensors, controller, config, n_ctrl, params_batched, "jax", perturbed)
     return sm.mjx_model, (fn if kept else fn.jitted)
+
+
+def check_key(key):
+    """One PRNG key (`jax.random.PRNGKey(seed)` or `jax.random.key(seed)`), or one ValueError line."""
+    dtype, shape = getattr(key, "dtype", None), np.shape(key)
+    typed = dtype is not None and jax.dtypes.issubdtype(dtype, jax.dtypes.prng_key)
+    if not (typed and shape == () or not typed and shape == (2,) and dtype == np.uint32):
+        raise ValueError(f"key: got {type(key).__name__} of shape {shape} and dtype {dtype}: give one PRNG key, "
+                         "jax.random.PRNGKey(seed) or jax.random.key(seed) (the rollout splits it per env)")
+
+
+def check_params_batch(params, b: int):
+    """With `params_batched`, every leaf of `params` has a leading axis of the terrain's `b` envs, or one
+    ValueError line naming the first leaf that has not."""
+    for path, leaf in jax.tree_util.tree_flatten_with_path(params)[0]:
+        shape = np.shape(leaf)
+        if not shape or shape[0] != b:
+            raise ValueError(f"params{jax.tree_util.keystr(path)}: shape {shape}; params_batched=True needs a "
+                             f"leading axis of the terrain's {b} envs on every leaf")
 
 
 def check_perturbation(perturbation, b: int):
