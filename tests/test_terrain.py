@@ -128,6 +128,11 @@ def test_unknown_preset_and_empty_batch():
         get_terrain("mountains")
     with pytest.raises(ValueError, match="batch=0"):
         sample(get_terrain("flat"), jax.random.PRNGKey(0), 0)
+    one = jax.tree_util.tree_map(lambda x: x[0], sample(get_terrain("flat"), jax.random.PRNGKey(0), 1))
+    with pytest.raises(ValueError, match=r"res=0.0: must be a finite number of metres > 0"):
+        heightmap(one, (0.0, 1.0), (0.0, 1.0), 0.0)
+    with pytest.raises(ValueError, match=r"y_range=\(1.0, 0.0\): must be finite, low < high"):
+        heightmap(one, (0.0, 1.0), (1.0, 0.0), 0.01)
 
 
 def _tops(t):

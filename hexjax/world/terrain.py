@@ -301,6 +301,11 @@ def obstacle_circles(terrain: Terrain):
 
 def heightmap(terrain: Terrain, x_range, y_range, res: float = 0.005) -> np.ndarray:
     """Top height of a single (unbatched) terrain on a regular grid, (nx, ny) m, numpy."""
+    if not (np.isfinite(res) and res > 0):
+        raise ValueError(f"res={res!r}: must be a finite number of metres > 0")
+    for name, (lo, hi) in (("x_range", x_range), ("y_range", y_range)):
+        if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
+            raise ValueError(f"{name}=({lo!r}, {hi!r}): must be finite, low < high")
     xs = np.arange(x_range[0], x_range[1], res) + 0.5 * res
     ys = np.arange(y_range[0], y_range[1], res) + 0.5 * res
     pos, half = np.asarray(terrain.box_pos), np.asarray(terrain.box_half)
