@@ -157,7 +157,9 @@ def test_sweep_axes_envelope_and_interval():
     from hexjax.experiments.robustness import envelope, parse_axis, wilson
     assert parse_axis("friction=0.3:1.0:3") == ("friction", [0.3, 0.65, 1.0])
     assert parse_axis("obstacle_height=0.02,0.05") == ("obstacle_height", [0.02, 0.05])
-    for bad, msg in (("gravity=1:2:3", "unknown axis"), ("friction=1:0.3:3", "low <= high"),
+    assert parse_axis("friction=0.5:0.5:1") == ("friction", [0.5])
+    for bad, msg in (("gravity=1:2:3", "unknown axis"), ("friction=1:0.3:3", r"low < high \(or n = 1\)"),
+                     ("friction=0.5:0.5:3", "low < high"), ("friction=0.5,1,0.5", "distinct numbers"),
                      ("friction", "name=low:high:n"), ("payload_kg=0:1:0", "1 <= n <= 64")):
         with pytest.raises(ValueError, match=msg):
             parse_axis(bad)
@@ -182,7 +184,7 @@ def test_robustness_command_refuses_bad_input_before_any_rollout(capsys, tmp_pat
     late = tmp_path / "late.yaml"
     late.write_text("randomization:\n  fault: {kind: limp, time_s: 100.0}\n")
     for argv, msg in ((["--axis", "gravity=1:2:3"], "--axis 'gravity': unknown axis"),
-                      (["--axis", "friction=1.0:0.3:3"], "low <= high"),
+                      (["--axis", "friction=1.0:0.3:3"], "low < high"),
                       ([], "--axis given 0 times"),
                       (["--axis", "force_dropout=0:1.5:2"], "randomization.force_dropout=[1.5, 1.5]: must lie in [0, 1]"),
                       (["--axis", "friction=0.5,1", "--randomization", str(late)],

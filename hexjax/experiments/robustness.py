@@ -54,16 +54,16 @@ def parse_axis(text: str) -> Tuple[str, List[float]]:
         if ":" in spec:
             lo, hi, n = spec.split(":")
             lo, hi, n = float(lo), float(hi), int(n)
-            if not (math.isfinite(lo) and math.isfinite(hi)) or lo > hi or not (1 <= n <= 64):
+            if not (math.isfinite(lo) and math.isfinite(hi) and (lo < hi or lo == hi and n == 1) and 1 <= n <= 64):
                 raise ValueError
             values = [lo] if n == 1 else [round(float(v), 9) for v in np.linspace(lo, hi, n)]
         else:
             values = [float(v) for v in spec.split(",")]
-            if not values or not all(math.isfinite(v) for v in values):
+            if not values or not all(math.isfinite(v) for v in values) or len(set(values)) < len(values):
                 raise ValueError
     except ValueError:
-        raise ValueError(f"--axis {text!r}: values must be low:high:n with low <= high and 1 <= n <= 64, "
-                         "or a comma list of numbers") from None
+        raise ValueError(f"--axis {text!r}: values must be low:high:n with low < high (or n = 1) and 1 <= n <= 64, "
+                         "or a comma list of distinct numbers") from None
     return name, values
 
 
