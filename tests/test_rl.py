@@ -42,6 +42,10 @@ def test_env_bad_input():
         HexapodGoalEnv(goal_distance=0.0)
     with pytest.raises(ValueError, match="terrain preset"):
         HexapodGoalEnv(terrain="lava")
+    n = jax.device_count()  # 2 in the suite (tests/conftest.py)
+    if n > 1:
+        with pytest.raises(ValueError, match=f"num_envs={n + 1}: must be a multiple of the {n} devices"):
+            train_ppo(HexapodGoalEnv(), num_envs=n + 1)
 
 
 def test_brax_ppo_trains_end_to_end_and_its_reward_improves():

@@ -58,6 +58,9 @@ def train_ppo(env: HexapodGoalEnv, num_timesteps: int = 60_000, num_envs: int = 
               num_evals: int = 4, seed: int = 0, progress=None, **ppo_kwargs):
     """Brax PPO on `env`. Returns (eval history [(env steps, mean episode reward)], make_policy, params).
     Defaults are a smoke size for a 2-core CPU; raise num_timesteps / num_envs on a GPU."""
+    if num_envs % jax.device_count():  # Brax splits the envs evenly over the devices (an assert of its own)
+        raise ValueError(f"num_envs={num_envs}: must be a multiple of the {jax.device_count()} devices Brax splits "
+                         "the envs over")
     from brax.training.agents.ppo import train as ppo  # brax is the optional `rl` extra
     if "device_put_replicated" not in vars(jax):  # brax 0.14.2 on jax >= 0.10 (see _device_put_replicated)
         jax.device_put_replicated = _device_put_replicated
