@@ -87,11 +87,14 @@ def render_env(robot: RobotSpec, physics: PhysicsConfig, terrain, summary, env: 
     n_env = int(np.shape(summary.qpos_trace)[0])
     if not (0 <= env < n_env):
         raise ValueError(f"env={env!r}: the rollout has envs 0..{n_env - 1}")
-    if every < 1 or width < 16 or height < 16:
-        raise ValueError(f"every={every!r}, width={width!r}, height={height!r}: need every >= 1 and a frame >= 16 px")
+    if every < 1 or not (16 <= width <= 4096 and 16 <= height <= 4096):
+        raise ValueError(f"every={every!r}, width={width!r}, height={height!r}: need every >= 1 and a frame of "
+                         "16-4096 px a side")
     _headless_gl()
     m = scene_model(robot, physics, terrain.box_pos[env], terrain.box_half[env], terrain.box_valid[env],
                     float(np.asarray(terrain.ground_z)[env]))
+    vis = m.vis.global_  # the offscreen framebuffer holds the frame asked for
+    vis.offwidth, vis.offheight = max(vis.offwidth, width), max(vis.offheight, height)
     d = mujoco.MjData(m)
     pads = np.array([mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, f"{n}_pad") for n in LEG_NAMES])
     feet = np.array([mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, f"{n}_foot") for n in LEG_NAMES])
@@ -158,7 +161,7 @@ def render_walk(robot_name: str = "luneckas2020", terrain_name: str = "high-larg
     the middle frame of the first. Returns what was written."""
     import imageio.v2 as imageio
     import jax
-    envs = list(envs)
+    envs = list(dict.fromkeys(envs))  # each env once, in the order given
     if not envs or min(envs) < 0:
         raise ValueError(f"envs={envs!r}: give one or more env indices >= 0")
     if not seconds > 0:
@@ -196,5 +199,5 @@ def run(o, entry) -> dict:
 
 def report(res: dict) -> str:
     return "\n".join([f"wrote {w}" for w in res["written"]] + [
-        f"{res['frames_per_video']} frames per video at {res['fps']:.0f} fps; tactile steps per leg "
+        f"{res['frames_per_video']} frames per video at {res['fps']:.3g} fps; tactile steps per leg "
         f"{res['tactile_steps']}; fell {res['fell']}"])

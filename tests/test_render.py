@@ -70,6 +70,15 @@ def test_render_rejects_bad_input(tmp_path):
         render_env(ROBOT, PhysicsConfig(), _terrain(), types.SimpleNamespace(qpos_trace=None), progress=False)
     with pytest.raises(ValueError, match="suffix"):
         write_video(np.zeros((2, 16, 16, 3), np.uint8), str(tmp_path / "walk.avi"), fps=10)
+    with pytest.raises(ValueError, match="width=5000"):
+        render_env(ROBOT, PhysicsConfig(), _terrain(), rec, width=5000, progress=False)
+
+
+def test_frames_wider_than_the_models_framebuffer():
+    """A frame wider than the 1920 px the scene model's framebuffer starts with (MuJoCo refused it)."""
+    frames = render_env(ROBOT, PhysicsConfig(), _terrain(), _fake_recording(t=1), width=2400, height=16,
+                        progress=False)
+    assert frames.shape == (1, 16, 2400, 3) and frames.std() > 10
 
 
 def test_render_command_writes_a_video_and_a_still(tmp_path):

@@ -129,6 +129,8 @@ def test_invalid_rollout_inputs_raise_before_tracing():
         rollout(spec, terr, c, p, 1.0, jax.random.PRNGKey(0), physics=PhysicsConfig(timestep=0.03))
     with pytest.raises(ValueError, match="derive it from hexjax.control.Controller"):
         rollout(spec, terr, object(), p, 1.0, jax.random.PRNGKey(0))
+    with pytest.raises(ValueError, match=r"duration=1000000000.0: 200,000,000,060 physics steps, more than a rollout"):
+        rollout(spec, terr, c, p, 1e9, jax.random.PRNGKey(0))
     with pytest.raises(ValueError, match=r"key: got ArrayImpl of shape \(3,\)"):
         rollout(spec, terr, c, p, 1.0, jnp.zeros(3))
     with pytest.raises(ValueError, match=r"key: got int"):

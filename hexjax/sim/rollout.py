@@ -170,8 +170,11 @@ def check_static(robot: RobotSpec, controller, duration, physics: PhysicsConfig,
     if config.solver_grad == "implicit" and physics.cone != "pyramidal":
         raise ValueError(f"physics.cone={physics.cone!r}: rollout.solver_grad='implicit' supports the "
                          "pyramidal cone only (use solver_grad='unrolled')")
-    substeps(physics, controller.dt)
-    return control_steps(duration, controller.dt)
+    n_ctrl = control_steps(duration, controller.dt)
+    n_all = (settle_steps(config, controller.dt) + n_ctrl) * substeps(physics, controller.dt)
+    if n_all > 2 ** 31 - 1:  # the scan's step index and the step counts are int32
+        raise ValueError(f"duration={duration!r}: {n_all:,} physics steps, more than a rollout counts (2**31 - 1)")
+    return n_ctrl
 
 
 def rollout(robot: RobotSpec, terrain: Terrain, controller: Controller, params, duration: float, key, *,
