@@ -163,6 +163,10 @@ def test_components_and_circles_envelope_every_obstacle_cell():
     # with fewer slots than components, the ones nearest `near` are kept
     c = circles(spec, jnp.asarray(mask), 1, near=jnp.array([1.05, 0.15]))
     np.testing.assert_allclose(np.asarray(c.centres)[0], [1.05, 0.15], atol=1e-6)
+    # a map of fewer cells than slots (a 2 x 1 grid, 4 slots): its one component, then empty slots
+    c = circles(GridSpec(origin=(0.0, 0.0), cell=0.1, nx=2, ny=1), jnp.array([[True], [False]]), 4)
+    assert np.asarray(c.valid).tolist() == [True, False, False, False] and np.asarray(c.cells).tolist() == [1, 0, 0, 0]
+    np.testing.assert_allclose(np.asarray(c.centres), [[0.05, 0.05], [0, 0], [0, 0], [0, 0]], atol=1e-6)
 
 
 @pytest.mark.parametrize("kw, msg", [
@@ -184,6 +188,8 @@ def test_bad_grids_and_sensor_files_fail_in_one_line(tmp_path):
         GridSpec(cell=0.0).validate()
     with pytest.raises(ValueError, match=r"^grid.nx=0"):
         GridSpec(nx=0).validate()
+    with pytest.raises(ValueError, match=r"^grid.nx=3500000: must be a whole number of cells in \[1, 4096\]$"):
+        GridSpec.covering((0.0, 0.0), (3.5, 1.0), 1e-6)  # was a 42 TB allocation
     bad = tmp_path / "cam.yaml"
     bad.write_text("kind: camera\nfov_h: -10\n")
     with pytest.raises(ValueError, match=r"cam.yaml: sensor.fov_h=-10.0: must be in \(0, 170\]"):

@@ -51,7 +51,9 @@ class GridSpec:
         """The grid of `cell` m cells covering the rectangle lo .. hi (2,), m."""
         cls(cell=cell).validate()
         n = np.ceil((np.asarray(hi, float) - np.asarray(lo, float)) / cell).astype(int)
-        return cls(origin=(float(lo[0]), float(lo[1])), cell=float(cell), nx=int(n[0]), ny=int(n[1]))
+        spec = cls(origin=(float(lo[0]), float(lo[1])), cell=float(cell), nx=int(n[0]), ny=int(n[1]))
+        spec.validate()  # e.g. a cell so small that the rectangle needs more than 4096 a side
+        return spec
 
 
 @struct.dataclass

@@ -75,7 +75,11 @@ def circles(spec: GridSpec, mask, q: int, near=None) -> Circles:
     rad = rad + spec.cell * np.sqrt(0.5)
     root = cnt > 0
     score = -jnp.linalg.norm(cen - near, axis=-1) if near is not None else cnt
-    _, top = jax.lax.top_k(jnp.where(root, score, -jnp.inf), q)
+    _, top = jax.lax.top_k(jnp.where(root, score, -jnp.inf), min(q, n))
+    if n < q:  # a map of fewer cells than circles: the rest are empty slots
+        top = jnp.concatenate([top, jnp.full(q - n, n, top.dtype)])
+        root, cen, rad, cnt = (jnp.concatenate([x, jnp.zeros((1,) + x.shape[1:], x.dtype)])
+                               for x in (root, cen, rad, cnt))
     ok = root[top]
     return Circles(centres=jnp.where(ok[:, None], cen[top], 0.0), radii=jnp.where(ok, rad[top], 0.0), valid=ok,
                    cells=jnp.where(ok, cnt[top], 0.0).astype(jnp.int32))
