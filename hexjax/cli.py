@@ -121,11 +121,20 @@ def main(argv=None) -> int:
     entry: Entry = a.entry
     opts = types.SimpleNamespace(**{o.name: getattr(a, o.name) for o in entry.options})
     from hexjax.experiments import runner
+    name = f"hexjax {a.cmd}{' ' + a.experiment if a.cmd == 'experiment' else ''}"
     try:
         runner.run(entry, opts)
     except ValueError as err:
-        print(f"hexjax {a.cmd}{' ' + a.experiment if a.cmd == 'experiment' else ''}: error: {err}", file=sys.stderr)
+        print(f"{name}: error: {err}", file=sys.stderr)
         return 2
+    except Exception as err:  # JAX's allocation failure: one line, the sizes to lower, not XLA's stack
+        text = str(err)
+        if type(err).__name__ != "JaxRuntimeError" or "Out of memory" not in text:
+            raise
+        need = text[text.index("Out of memory"):].splitlines()[0].rstrip(".")
+        print(f"{name}: error: {need} on the device: lower the sizes asked for (envs, fields, polygons) or give "
+              "the run a --chunk where it has one", file=sys.stderr)
+        return 1
     return 0
 
 

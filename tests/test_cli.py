@@ -113,6 +113,30 @@ def test_cli_reports_bad_input_before_any_work(capsys, tmp_path):
     assert "luneckas2020-dataset" in capsys.readouterr().err
 
 
+def test_out_of_memory_is_one_line_naming_the_sizes(capsys, monkeypatch):
+    """XLA's allocation failure (`chen2019-incenter --polygons 100000000` asked for 42 GB) ends the command with
+    one line; any other runtime error keeps its traceback."""
+    import jax
+
+    from hexjax.experiments import runner
+
+    def fail(text):
+        def run(entry, o):
+            raise jax.errors.JaxRuntimeError(text)
+        return run
+
+    monkeypatch.setattr(runner, "run", fail("INTERNAL: Error dispatching computation: Out of memory allocating "
+                                            "42000001488 bytes.\nmore"))
+    assert main(["experiment", "chen2019-incenter"]) == 1
+    err = capsys.readouterr().err
+    assert err == ("hexjax experiment chen2019-incenter: error: Out of memory allocating 42000001488 bytes on the "
+                   "device: lower the sizes asked for (envs, fields, polygons) or give the run a --chunk where it "
+                   "has one\n"), err
+    monkeypatch.setattr(runner, "run", fail("INTERNAL: something else"))
+    with pytest.raises(jax.errors.JaxRuntimeError, match="something else"):
+        main(["experiment", "chen2019-incenter"])
+
+
 def test_the_library_checks_what_the_cli_bounds_check():
     """The registry's bounds only answer sooner: a Python caller of the same functions gets the library's own
     one-line error for the same values."""
