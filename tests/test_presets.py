@@ -94,6 +94,21 @@ def test_a_bad_terrain_file_and_bad_names(tmp_path):
         get_terrain(str(tmp_path / "broken.yaml"))
 
 
+def test_specs_built_in_python_are_taken_where_names_are():
+    """`HexapodGoalEnv(robot=RobotSpec(...))` had looked for a file named after the spec's repr."""
+    import dataclasses
+    robot, stairs = get_robot("luneckas2020"), get_terrain("stairs-up")
+    assert get_robot(robot) is robot and get_terrain(stairs) == stairs
+    assert get_terrain(stairs, difficulty=0.5) == get_terrain("stairs-up", difficulty=0.5)
+    for call, match in ((lambda: get_robot(3), r"^robot=3: give a preset name, a .yaml path or a RobotSpec$"),
+                        (lambda: get_terrain(None), r"^terrain=None: give a preset name"),
+                        (lambda: get_terrain(stairs, lenght=1.0), r"^terrain.lenght: unknown key"),
+                        (lambda: get_terrain(stairs, length=-1.0), r"^terrain.length=-1.0: must be a finite number"),
+                        (lambda: get_robot(dataclasses.replace(robot, total_mass=-1.0)), r"^robot.total_mass=-1.0")):
+        with pytest.raises(ValueError, match=match):
+            call()
+
+
 def test_own_robot_and_terrain_files_work_in_the_cli(tmp_path, capsys):
     """`--robot my.yaml` and a terrain file of one's own in `--categories`: a longer-legged Luneckas robot on
     a denser field, evaluated (MuJoCo C physics, so no MJX program is compiled for the new robot)."""

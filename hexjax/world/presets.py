@@ -16,14 +16,26 @@ names the file, the key and the value.
 
 from __future__ import annotations
 
+import dataclasses
+import os
+
 from hexjax.world.files import build, read_yaml, resolve
 from hexjax.world.robot import RobotSpec
 from hexjax.world.terrain import TerrainSpec
 
 
-def get_robot(name: str) -> RobotSpec:
+def _named(kind: str, name, spec_type) -> None:
+    if not isinstance(name, (str, os.PathLike)):
+        raise ValueError(f"{kind}={name!r}: give a preset name, a .yaml path or a {spec_type.__name__}")
+
+
+def get_robot(name) -> RobotSpec:
     """`RobotSpec` of preset `name` (configs/robots/<name>.yaml) or of a YAML file path. A file without
-    `name` takes its file name."""
+    `name` takes its file name. A `RobotSpec` is checked and given back."""
+    if isinstance(name, RobotSpec):
+        name.validate()
+        return name
+    _named("robot", name, RobotSpec)
     path = resolve("robots", name)
     return build(RobotSpec, read_yaml(path), str(path), "robot", defaults={"name": path.stem})
 
@@ -31,7 +43,18 @@ def get_robot(name: str) -> RobotSpec:
 def get_terrain(name: str, **overrides) -> TerrainSpec:
     """`TerrainSpec` of preset `name` (configs/terrains/<name>.yaml) or of a YAML file path, with keys
     replaced by `overrides` (checked like the file's own). A `difficulty` key sets the keys its family scales
-    (`hexjax.world.terrain.DIFFICULTY`; lengths for the Luneckas 2020 robot), over any the file writes."""
+    (`hexjax.world.terrain.DIFFICULTY`; lengths for the Luneckas 2020 robot), over any the file writes.
+    A `TerrainSpec` is taken as it is (its difficulty already applied), with `overrides` replaced."""
+    if isinstance(name, TerrainSpec):
+        known = {f.name for f in dataclasses.fields(TerrainSpec)}
+        for k in overrides:
+            if k not in known:
+                raise ValueError(f"terrain.{k}: unknown key; known keys: {', '.join(sorted(known))}")
+        spec = dataclasses.replace(name, **overrides)
+        spec.validate()
+        return spec.at_difficulty(spec.difficulty) if "difficulty" in overrides and spec.difficulty is not None \
+            else spec
+    _named("terrain", name, TerrainSpec)
     path = resolve("terrains", name)
     raw = {**read_yaml(path), **overrides}
     spec = build(TerrainSpec, raw, str(path), "terrain")
