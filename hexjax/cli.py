@@ -36,6 +36,9 @@ def _value_parser(opt: Option):
                 raise argparse.ArgumentTypeError(f"{x!r} in {s!r}: not a value of type {one.__name__}") from None
         if not vals and opt.default:  # an empty list only where the default is one ('terrain --difficulty')
             raise argparse.ArgumentTypeError(f"{s!r}: give at least one value")
+        twice = [v for i, v in enumerate(vals) if v in vals[:i]]
+        if twice:  # the same walk, panel or category again
+            raise argparse.ArgumentTypeError(f"{twice[0]!r} given twice in {s!r}")
         bad = [v for v in vals if opt.choices and v not in opt.choices]
         if bad:
             raise argparse.ArgumentTypeError(f"{bad[0]!r} is not one of {', '.join(map(str, opt.choices))}")

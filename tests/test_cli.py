@@ -102,7 +102,9 @@ def test_cli_reports_bad_input_before_any_work(capsys, tmp_path):
                        (["bench", "--seconds", "inf"], "--seconds: inf: must be a finite number"),
                        (["bench", "--batches", "16,x"], "'x' in '16,x': not a value of type int"),
                        (["robustness", "--controllers", ","], "--controllers: ',': give at least one value"),
-                       (["render", "--seconds", "1e9"], "--seconds: 1000000000: must be in (0, 600]")):
+                       (["render", "--seconds", "1e9"], "--seconds: 1000000000: must be in (0, 600]"),
+                       (["evaluate", "--categories", "flat,low-small,flat"],
+                        "--categories: 'flat' given twice in 'flat,low-small,flat'")):
         with pytest.raises(SystemExit) as ex:
             main(argv)
         assert ex.value.code == 2 and said in capsys.readouterr().err, argv
