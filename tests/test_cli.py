@@ -113,6 +113,13 @@ def test_cli_reports_bad_input_before_any_work(capsys, tmp_path):
     assert "'trot' is not one of" in capsys.readouterr().err
     assert main(["experiment", "luneckas2020-predictor", "--data", str(tmp_path / "none.npz")]) == 2
     assert "luneckas2020-dataset" in capsys.readouterr().err
+    (tmp_path / "text.npz").write_text("not an archive\n")  # numpy took it for a pickle and said so
+    assert main(["experiment", "luneckas2020-predictor", "--data", str(tmp_path / "text.npz")]) == 2
+    assert "text.npz: not an .npz archive numpy can read (ValueError)" in capsys.readouterr().err
+    # a flag of the other benchmark would be ignored (--seconds with --grad was, in a recorded run)
+    for argv, said in ((["bench", "--grad", "--seconds", "1"], "--seconds: sets the forward benchmark, not --grad"),
+                       (["bench", "--backward", "forward"], "--backward: sets the gradient benchmark: add --grad")):
+        assert main(argv) == 2 and said in capsys.readouterr().err, argv
 
 
 def test_out_of_memory_is_one_line_naming_the_sizes(capsys, monkeypatch):

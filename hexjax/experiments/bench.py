@@ -187,7 +187,15 @@ def format_bench(res: Dict) -> str:
 
 
 # The command (configs/commands/bench.yaml) ---------------------------------------------------------------------
+FORWARD_ONLY = ("robot", "seconds", "terrains", "controller", "backend", "nthread", "devices")
+GRAD_ONLY = ("tune", "solver_grad", "backward", "unroll_substeps")
+
+
 def run(o, entry) -> Dict:
+    for opt in entry.options:  # a flag of the other benchmark, changed from its default, would be ignored
+        if opt.name in (FORWARD_ONLY if o.grad else GRAD_ONLY) and getattr(o, opt.name) != opt.default:
+            raise ValueError(f"{opt.flag}: " + ("sets the forward benchmark, not --grad" if o.grad else
+                                                "sets the gradient benchmark: add --grad"))
     if o.grad:
         from hexjax.experiments.bench_grad import bench_grad
         return bench_grad(tune=o.tune, batches=o.batches, solver_grads=o.solver_grad, repeats=o.repeats,

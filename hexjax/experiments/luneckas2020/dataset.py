@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import os
+import zipfile
 from typing import Dict, Sequence
 
 import numpy as np
@@ -83,8 +84,12 @@ def save_dataset(path: str, data: Dict[str, np.ndarray], meta: Dict) -> None:
 def load_dataset(path: str) -> Dict[str, np.ndarray]:
     if not os.path.isfile(path):
         raise ValueError(f"dataset {path!r} not found: make one with `hexjax experiment luneckas2020-dataset --out {path}`")
-    with np.load(path, allow_pickle=False) as f:
-        data = {k: f[k] for k in f.files if k != "meta"}
+    try:
+        with np.load(path, allow_pickle=False) as f:
+            data = {k: f[k] for k in f.files if k != "meta"}
+    except (ValueError, OSError, zipfile.BadZipFile) as err:  # not an .npz: numpy takes it for a pickle
+        raise ValueError(f"{path}: not an .npz archive numpy can read ({type(err).__name__}); make a dataset with "
+                         "`hexjax experiment luneckas2020-dataset`") from None
     if "X" not in data or "Y" not in data or data["X"].ndim != 3:
         raise ValueError(f"{path}: not a hexjax error-predictor dataset (needs X (S, K, F) and Y (S, 2))")
     if data["X"].shape[-1] != len(FEATURES):
