@@ -16,6 +16,7 @@ MUJOCO_GL=egl fails outright (seen on the GPU machine), which would break every 
 from __future__ import annotations
 
 import os
+import warnings
 from typing import Optional, Sequence
 
 import numpy as np
@@ -149,7 +150,9 @@ def write_video(frames: np.ndarray, path: str, fps: float) -> str:
         # H.264 wants even sizes; macro_block_size=1 keeps the frame as rendered
         h, w = frames.shape[1:3]
         frames = frames[:, : h - h % 2, : w - w % 2]
-        imageio.mimsave(path, list(frames), fps=fps, codec="libx264", quality=7, macro_block_size=1)
+        with warnings.catch_warnings():  # JAX warns at every fork; imageio-ffmpeg's fork execs ffmpeg at once
+            warnings.filterwarnings("ignore", message=r"os\.fork\(\) was called", category=RuntimeWarning)
+            imageio.mimsave(path, list(frames), fps=fps, codec="libx264", quality=7, macro_block_size=1)
     return path
 
 

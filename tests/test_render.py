@@ -2,6 +2,7 @@
 
 import os
 import types
+import warnings
 
 import jax.numpy as jnp
 import numpy as np
@@ -47,8 +48,11 @@ def test_frames_show_the_robot_forces_and_tactile_pads(tmp_path):
     assert red(f[0]) > 5 and yellow(f[0]) == 0 and red(f[3]) == 0 and yellow(f[3]) > 20
     assert green(f[0]) > 5  # the foot-force arrows
     for suffix in (".gif", ".mp4"):
-        path = write_video(frames, str(tmp_path / f"walk{suffix}"), fps=10)
+        with warnings.catch_warnings(record=True) as said:
+            warnings.simplefilter("always")
+            path = write_video(frames, str(tmp_path / f"walk{suffix}"), fps=10)
         assert os.path.getsize(path) > 1000
+        assert not [w for w in said if "os.fork()" in str(w.message)], suffix  # ffmpeg's start worried users
 
 
 def test_scene_floor_sits_at_the_terrains_ground_z():
