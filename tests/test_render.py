@@ -85,6 +85,7 @@ def test_frames_wider_than_the_models_framebuffer():
     assert frames.shape == (1, 16, 2400, 3) and frames.std() > 10
 
 
+@pytest.mark.filterwarnings(r"ignore:os\.fork\(\) was called:RuntimeWarning")  # this test's own ffmpeg read
 def test_render_command_writes_a_video_and_a_still(tmp_path):
     """The video holds one frame per `every` control steps of the walk; the still is its middle frame and
     shows the robot (its blue torso and dark feet in the middle of the picture, over the grey floor)."""
