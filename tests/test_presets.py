@@ -102,8 +102,11 @@ def test_specs_built_in_python_are_taken_where_names_are():
     assert get_terrain(stairs, difficulty=0.5) == get_terrain("stairs-up", difficulty=0.5)
     for call, match in ((lambda: get_robot(3), r"^robot=3: give a preset name, a .yaml path or a RobotSpec$"),
                         (lambda: get_terrain(None), r"^terrain=None: give a preset name"),
-                        (lambda: get_terrain(stairs, lenght=1.0), r"^terrain.lenght: unknown key"),
-                        (lambda: get_terrain(stairs, length=-1.0), r"^terrain.length=-1.0: must be a finite number"),
+                        (lambda: get_terrain(stairs, lenght=1.0),
+                         r"^TerrainSpec: terrain.lenght: unknown key \(did you mean 'length'\?\)"),
+                        (lambda: get_terrain(stairs, length=-1.0),
+                         r"^TerrainSpec: terrain.length=-1.0: must be a finite number"),
+                        (lambda: get_terrain(stairs, length="long"), r"^TerrainSpec: terrain.length='long': must be"),
                         (lambda: get_robot(dataclasses.replace(robot, total_mass=-1.0)), r"^robot.total_mass=-1.0")):
         with pytest.raises(ValueError, match=match):
             call()

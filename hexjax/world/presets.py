@@ -45,13 +45,9 @@ def get_terrain(name: str, **overrides) -> TerrainSpec:
     replaced by `overrides` (checked like the file's own). A `difficulty` key sets the keys its family scales
     (`hexjax.world.terrain.DIFFICULTY`; lengths for the Luneckas 2020 robot), over any the file writes.
     A `TerrainSpec` is taken as it is (its difficulty already applied), with `overrides` replaced."""
-    if isinstance(name, TerrainSpec):
-        known = {f.name for f in dataclasses.fields(TerrainSpec)}
-        for k in overrides:
-            if k not in known:
-                raise ValueError(f"terrain.{k}: unknown key; known keys: {', '.join(sorted(known))}")
-        spec = dataclasses.replace(name, **overrides)
-        spec.validate()
+    if isinstance(name, TerrainSpec):  # the overrides checked as a file's keys are, over the spec's own values
+        own = {f.name: getattr(name, f.name) for f in dataclasses.fields(TerrainSpec)}
+        spec = build(TerrainSpec, overrides, "TerrainSpec", "terrain", defaults=own)
         return spec.at_difficulty(spec.difficulty) if "difficulty" in overrides and spec.difficulty is not None \
             else spec
     _named("terrain", name, TerrainSpec)
