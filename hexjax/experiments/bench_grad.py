@@ -12,8 +12,10 @@ For one tuning config (configs/tune/*.yaml) and each batch size, times in one pr
   'forward' no backward pass, forward mode, `hexjax.sim.forward_mode`: rows `grad-implicit-forward`, taken
   without the config's grad_clip, which bounds reverse mode's cotangents only: each row records its bound),
 and reports env-steps/s, the gradient's rate as a share of the forward's, and both compile times.
-Compile times are what this process paid: with a warm compilation cache they are loads (set
-HEXJAX_CACHE_DIR=off to measure compiles).
+Both programs are kept on disk (`hexjax.sim.compiled`), the gradient under the tuner's own key, so a second run,
+or a run after `hexjax tune` with the same config and `train_batch`, loads them instead of tracing them again:
+its compile times are loads (rows say where each program came from; set HEXJAX_CACHE_DIR=off to measure
+compiles).
 """
 
 from __future__ import annotations
@@ -30,9 +32,11 @@ from jax.flatten_util import ravel_pytree
 from tqdm.auto import tqdm
 
 from hexjax import cache
+from hexjax.sim.compiled import Compiled
 from hexjax.sim.config import GRAD_SOLVERS, RolloutConfig
 from hexjax.sim.step import control_steps, settle_steps, substeps
 from hexjax.tune.config import BACKWARDS, load_tune_config
+from hexjax.tune.driver import program_digest
 from hexjax.tune.objective import Problem
 
 
@@ -46,9 +50,18 @@ def _time(fn, args, repeats: int):
     return (compile_s,) + best_call(compiled, args, repeats)
 
 
-def best_call(compiled, args, repeats: int):
-    """(best call s, output) of a compiled program: one warm-up call, then the fastest of `repeats` timed ones."""
-    out = jax.block_until_ready(compiled(*args))
+def _time_kept(program: Compiled, args, repeats: int):
+    """(compile s, where the program came from, best call s, output) of a kept program: its first call compiles
+    or loads it (timed before the call runs, `Compiled.call`) and is the warm-up."""
+    out, stats = program.call(*args)
+    jax.block_until_ready(out)
+    return (stats.compile_s, stats.source) + best_call(program, args, repeats, warm=True)
+
+
+def best_call(compiled, args, repeats: int, warm: bool = False):
+    """(best call s, output) of a compiled program: one warm-up call (none if `warm`), then the fastest of
+    `repeats` timed ones."""
+    out = None if warm else jax.block_until_ready(compiled(*args))
     best = np.inf
     for _ in range(max(repeats, 1)):
         t0 = time.perf_counter()
@@ -107,10 +120,15 @@ def bench_grad(tune: str = "tactile_tripod", batches: Sequence[int] = (64,),
     jobs = [(b, m) for b in batches for m in ("forward",) + tuple(problems)]
     for b, mode in tqdm(jobs, desc="bench --grad", disable=not progress):
         terr, keys = data[b]
-        f = objective_program(base if mode == "forward" else problems[mode], grad=mode != "forward")
-        compile_s, run_s, out = _time(f, (u0, terr, keys), repeats)
+        problem = base if mode == "forward" else problems[mode]
+        # the gradient's key is the tuner's (`hexjax.tune.grad`) with train_batch = b: `hexjax tune` with this
+        # config and batch shares one kept program with it
+        role = "bench/forward" if mode == "forward" else "grad/vg"
+        digest = program_digest(dataclasses.replace(problem.cfg, train_batch=b), "grad")
+        program = Compiled(objective_program(problem, grad=mode != "forward"), static=problem.static(role, digest))
+        compile_s, source, run_s, out = _time_kept(program, (u0, terr, keys), repeats)
         row = dict(batch=b, mode=mode if mode == "forward" else f"grad-{mode}", compile_s=round(compile_s, 2),
-                   run_s=round(run_s, 4), env_steps_per_s=round(b * n_phys / run_s, 1))
+                   compiled=source, run_s=round(run_s, 4), env_steps_per_s=round(b * n_phys / run_s, 1))
         if mode == "forward":
             row["loss"] = float(out[0])
         else:
@@ -123,7 +141,8 @@ def bench_grad(tune: str = "tactile_tripod", batches: Sequence[int] = (64,),
             row["compile_vs_forward"] = round(compile_s / max(fwd["compile_s"], 1e-9), 2)
         rows.append(row)
         if progress:
-            tqdm.write(f"B={b} {row['mode']}: compile {compile_s:.1f} s, {row['env_steps_per_s']:.0f} env-steps/s"
+            tqdm.write(f"B={b} {row['mode']}: {'load' if source == 'disk' else 'compile'} {compile_s:.1f} s, "
+                       f"{row['env_steps_per_s']:.0f} env-steps/s"
                        + (f", {100 * row['rate_vs_forward']:.1f} % of forward" if "rate_vs_forward" in row else ""))
     dev = jax.devices()[0]
     return dict(kind="grad", tune=tune, controller=cfg.controller, terrain=cfg.terrain, window_s=cfg.window,
@@ -147,4 +166,7 @@ def format_bench_grad(res: dict) -> str:
         gn = f"{r['grad_norm']:9.3g} {r['grad_nonfinite']:9d}" if "grad_norm" in r else ""
         lines.append(f"{r['batch']:6d} {r['mode']:<21} {r['compile_s']:9.1f} {cx:>6} {r['env_steps_per_s']:12.0f} "
                      f"{pct:>8} {r['loss']:9.4f} {gn}")
+    if any(r.get("compiled") == "disk" for r in res["rows"]):
+        lines.append("compile s: loads of programs kept by an earlier run, not compiles (HEXJAX_CACHE_DIR=off "
+                     "measures compiles)")
     return "\n".join(lines)
