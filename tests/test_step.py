@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from hexjax.sim.config import PhysicsConfig, RolloutConfig
-from hexjax.sim.step import accumulate, control_steps, fall_state, init_acc, settle_steps, substeps, tilt
+from hexjax.sim.step import (accumulate, control_steps, fall_state, init_acc, settle_steps, substeps, tilt,
+                             total_physics_steps)
 
 
 def _q(x, y, z, yaw=0.0, roll=0.0):
@@ -25,6 +26,8 @@ def test_counts():
         substeps(PhysicsConfig(timestep=0.003), 0.02)
     assert settle_steps(RolloutConfig(settle_time=0.3), 0.02) == 15
     assert control_steps(1.0, 0.02) == 50 and control_steps(1.01, 0.02) == 51
+    # 15 settling + 50 walking control steps of 4 physics steps each
+    assert total_physics_steps(RolloutConfig(settle_time=0.3), PhysicsConfig(timestep=0.005), 0.02, 50) == 260
 
 
 def test_fall_state_is_tilt_or_height():

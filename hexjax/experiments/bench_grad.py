@@ -34,7 +34,7 @@ from tqdm.auto import tqdm
 from hexjax import cache
 from hexjax.sim.compiled import Compiled
 from hexjax.sim.config import GRAD_SOLVERS, RolloutConfig
-from hexjax.sim.step import control_steps, settle_steps, substeps
+from hexjax.sim.step import control_steps, total_physics_steps
 from hexjax.tune.config import BACKWARDS, load_tune_config
 from hexjax.tune.driver import program_digest
 from hexjax.tune.objective import Problem
@@ -75,8 +75,7 @@ def physics_steps(problem: Problem, duration: float | None = None) -> int:
     config's walk."""
     ctrl_dt = problem.train_ctrl.dt
     walk = problem.duration if duration is None else duration
-    return ((settle_steps(RolloutConfig(), ctrl_dt) + control_steps(walk, ctrl_dt))
-            * substeps(problem.physics(), ctrl_dt))
+    return total_physics_steps(RolloutConfig(), problem.physics(), ctrl_dt, control_steps(walk, ctrl_dt))
 
 
 def objective_program(problem: Problem, grad: bool, duration: float | None = None,

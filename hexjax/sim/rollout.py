@@ -26,7 +26,8 @@ from hexjax.sim.config import PhysicsConfig, RolloutConfig, SensorConfig
 from hexjax.sim.forward_mode import check_model, forward_solver
 from hexjax.sim.implicit import REMAT_POLICY, implicit_solver
 from hexjax.sim.model import integrator_rule, reversible_solver, rotation_rule, sim_model
-from hexjax.sim.step import Summary, control_steps, end_pose, make_control_step, make_env_start, settle_steps, substeps
+from hexjax.sim.step import (Summary, control_steps, end_pose, make_control_step, make_env_start, settle_steps,
+                             total_physics_steps)
 from hexjax.world.robot import RobotSpec
 from hexjax.world.terrain import Terrain
 
@@ -171,7 +172,7 @@ def check_static(robot: RobotSpec, controller, duration, physics: PhysicsConfig,
         raise ValueError(f"physics.cone={physics.cone!r}: rollout.solver_grad='implicit' supports the "
                          "pyramidal cone only (use solver_grad='unrolled')")
     n_ctrl = control_steps(duration, controller.dt)
-    n_all = (settle_steps(config, controller.dt) + n_ctrl) * substeps(physics, controller.dt)
+    n_all = total_physics_steps(config, physics, controller.dt, n_ctrl)
     if n_all > 2 ** 31 - 1:  # the scan's step index and the step counts are int32
         raise ValueError(f"duration={duration!r}: {n_all:,} physics steps, more than a rollout counts (2**31 - 1)")
     return n_ctrl
@@ -261,7 +262,7 @@ def rollout(robot: RobotSpec, terrain: Terrain, controller: Controller, params, 
     if not stats:
         return out
     jax.block_until_ready(out)
-    n_steps = (settle_steps(config, controller.dt) + n_ctrl) * substeps(physics, controller.dt)
+    n_steps = total_physics_steps(config, physics, controller.dt, n_ctrl)
     return out, RolloutStats(compile_s=compile_s, wall_s=time.perf_counter() - t0, env_steps=b * n_steps,
                              backend=backend, compiled=compiled)
 

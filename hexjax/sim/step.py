@@ -115,6 +115,11 @@ def control_steps(duration: float, ctrl_dt: float) -> int:
     return int(math.ceil(duration / ctrl_dt - 1e-9))
 
 
+def total_physics_steps(cfg: RolloutConfig, physics: PhysicsConfig, ctrl_dt: float, n_ctrl: int) -> int:
+    """Physics steps one env takes in a rollout of `n_ctrl` control steps, its settling included."""
+    return (settle_steps(cfg, ctrl_dt) + n_ctrl) * substeps(physics, ctrl_dt)
+
+
 # The fall test and the accumulators ------------------------------------------------------------------------
 def tilt(q):
     """Angle between the torso z axis and world z, rad, of quaternions q (..., 4)."""

@@ -40,7 +40,7 @@ def get_robot(name) -> RobotSpec:
     return build(RobotSpec, read_yaml(path), str(path), "robot", defaults={"name": path.stem})
 
 
-def get_terrain(name: str, **overrides) -> TerrainSpec:
+def get_terrain(name: str | TerrainSpec, **overrides) -> TerrainSpec:
     """`TerrainSpec` of preset `name` (configs/terrains/<name>.yaml) or of a YAML file path, with keys
     replaced by `overrides` (checked like the file's own). A `difficulty` key sets the keys its family scales
     (`hexjax.world.terrain.DIFFICULTY`; lengths for the Luneckas 2020 robot), over any the file writes.
