@@ -83,8 +83,12 @@ def test_a_bad_terrain_file_and_bad_names(tmp_path):
     path = _write(tmp_path, "t.yaml", doc)
     with pytest.raises(ValueError, match=r"t.yaml: terrain.height_range=\(0.05, 0.03\): min must be <= max"):
         get_terrain(path)
+    bad_length = _write(tmp_path, "t.yaml", {**doc, "height_range": [0.03, 0.05], "length": -1.0})
     with pytest.raises(ValueError, match=r"t.yaml: terrain.length=-1.0: must be a finite number > 0"):
-        get_terrain(_write(tmp_path, "t.yaml", {**doc, "height_range": [0.03, 0.05], "length": -1.0}))
+        get_terrain(bad_length)
+    # also where the command replaces the key (`evaluate --categories t.yaml` ran, its length set from --distance)
+    with pytest.raises(ValueError, match=r"t.yaml: terrain.length=-1.0: must be a finite number > 0"):
+        get_terrain(bad_length, length=1.3)
     with pytest.raises(ValueError, match=r"terrain preset 'hihg-small' unknown \(did you mean 'high-small'\?\)"):
         get_terrain("hihg-small")
     with pytest.raises(ValueError, match="nowhere.yaml: no such file"):

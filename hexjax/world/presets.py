@@ -44,17 +44,19 @@ def get_terrain(name: str | TerrainSpec, **overrides) -> TerrainSpec:
     """`TerrainSpec` of preset `name` (configs/terrains/<name>.yaml) or of a YAML file path, with keys
     replaced by `overrides` (checked like the file's own). A `difficulty` key sets the keys its family scales
     (`hexjax.world.terrain.DIFFICULTY`; lengths for the Luneckas 2020 robot), over any the file writes.
-    A `TerrainSpec` is taken as it is (its difficulty already applied), with `overrides` replaced."""
-    if isinstance(name, TerrainSpec):  # the overrides checked as a file's keys are, over the spec's own values
-        own = {f.name: getattr(name, f.name) for f in dataclasses.fields(TerrainSpec)}
-        spec = build(TerrainSpec, overrides, "TerrainSpec", "terrain", defaults=own)
-        return spec.at_difficulty(spec.difficulty) if "difficulty" in overrides and spec.difficulty is not None \
-            else spec
-    _named("terrain", name, TerrainSpec)
-    path = resolve("terrains", name)
-    raw = {**read_yaml(path), **overrides}
-    spec = build(TerrainSpec, raw, str(path), "terrain")
-    if spec.difficulty is not None:  # the family's scaled keys set from it (`TerrainSpec.at_difficulty`)
+    A `TerrainSpec` is taken as it is (its difficulty already applied), with `overrides` replaced.
+    A file is checked on its own first, so a bad value in it is refused even where an override (such as the
+    `length` that `hexjax evaluate` sets) would have replaced it."""
+    if isinstance(name, TerrainSpec):
+        base, source, scale = name, "TerrainSpec", "difficulty" in overrides
+    else:
+        _named("terrain", name, TerrainSpec)
+        path = resolve("terrains", name)
+        base, source, scale = build(TerrainSpec, read_yaml(path), str(path), "terrain"), str(path), True
+    # the overrides checked as a file's keys are, over the base's values
+    own = {f.name: getattr(base, f.name) for f in dataclasses.fields(TerrainSpec)}
+    spec = build(TerrainSpec, overrides, source, "terrain", defaults=own)
+    if scale and spec.difficulty is not None:  # the family's scaled keys set from it (`TerrainSpec.at_difficulty`)
         spec = spec.at_difficulty(spec.difficulty)
     return spec
 
