@@ -194,6 +194,10 @@ def test_bad_grids_and_sensor_files_fail_in_one_line(tmp_path):
     bad.write_text("kind: camera\nfov_h: -10\n")
     with pytest.raises(ValueError, match=r"cam.yaml: sensor.fov_h=-10.0: must be in \(0, 170\]"):
         get_sensor(str(bad))
+    with pytest.raises(ValueError, match=r"cam.yaml: sensor.fov_h=-10.0: must be in \(0, 170\]"):
+        get_sensor(str(bad), fov_h=60.0)  # the file is checked before a sweep's override replaces the key
+    with pytest.raises(ValueError, match=r"kinect_v1.yaml: sensor.noise_std=-1.0"):
+        get_sensor("kinect_v1", noise_std=-1.0)  # and the override itself
     bad.write_text("kind: camera\nfov_hh: 10\n")
     with pytest.raises(ValueError, match="cam.yaml: sensor.fov_hh: unknown key \\(did you mean 'fov_h'\\?\\)"):
         get_sensor(str(bad))

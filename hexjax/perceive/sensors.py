@@ -24,7 +24,7 @@ from typing import Tuple
 
 import numpy as np
 
-from hexjax.world.files import build, read_yaml, resolve
+from hexjax.world.files import build, read_yaml, replaced, resolve
 from hexjax.world.robot import RobotSpec
 
 SENSOR_KINDS = ("camera", "lidar")
@@ -119,6 +119,6 @@ def validate_perceiver(ctrl) -> None:
 
 def get_sensor(name: str, **overrides) -> RangeSensor:
     """`RangeSensor` of preset `name` (configs/sensors/<name>.yaml) or of a YAML file path, with keys replaced
-    by `overrides` (checked like the file's own)."""
+    by `overrides` (checked like the file's own, after the file is checked on its own)."""
     path = resolve("sensors", name)
-    return build(RangeSensor, {**read_yaml(path), **overrides}, str(path), "sensor")
+    return replaced(build(RangeSensor, read_yaml(path), str(path), "sensor"), overrides, str(path), "sensor")

@@ -144,3 +144,11 @@ def build(cls, raw: Mapping[str, Any], source: str, prefix: str, defaults: Optio
     except ValueError as err:
         raise ValueError(f"{source}: {err}") from None
     return obj
+
+
+def replaced(obj, overrides: Mapping[str, Any], source: str, prefix: str):
+    """The frozen dataclass instance `obj` with the keys of `overrides` replaced, each checked as a file's keys
+    are (`build`: unknown keys, types, the result's `validate()`). A loader builds the file on its own first and
+    then calls this, so a bad value in the file is refused even where an override would have replaced it."""
+    own = {f.name: getattr(obj, f.name) for f in dataclasses.fields(obj)}
+    return build(type(obj), overrides, source, prefix, defaults=own)

@@ -16,10 +16,9 @@ names the file, the key and the value.
 
 from __future__ import annotations
 
-import dataclasses
 import os
 
-from hexjax.world.files import build, read_yaml, resolve
+from hexjax.world.files import build, read_yaml, replaced, resolve
 from hexjax.world.robot import RobotSpec
 from hexjax.world.terrain import TerrainSpec
 
@@ -53,9 +52,7 @@ def get_terrain(name: str | TerrainSpec, **overrides) -> TerrainSpec:
         _named("terrain", name, TerrainSpec)
         path = resolve("terrains", name)
         base, source, scale = build(TerrainSpec, read_yaml(path), str(path), "terrain"), str(path), True
-    # the overrides checked as a file's keys are, over the base's values
-    own = {f.name: getattr(base, f.name) for f in dataclasses.fields(TerrainSpec)}
-    spec = build(TerrainSpec, overrides, source, "terrain", defaults=own)
+    spec = replaced(base, overrides, source, "terrain")
     if scale and spec.difficulty is not None:  # the family's scaled keys set from it (`TerrainSpec.at_difficulty`)
         spec = spec.at_difficulty(spec.difficulty)
     return spec
