@@ -105,9 +105,6 @@ class Entry:
     paper: str = ""
     path: str = ""
 
-    def option(self, name: str) -> Option:
-        return next(o for o in self.options if o.name == name)
-
 
 def _option(source: str, name: str, spec) -> Option:
     if not isinstance(spec, dict):

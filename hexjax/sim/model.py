@@ -93,7 +93,6 @@ class SimModel:
         self.ground_geom = gid("ground")
         self.foot_geoms = np.array([gid(f"{n}_foot") for n in LEG_NAMES])
         self.pad_geoms = np.array([gid(f"{n}_pad") for n in LEG_NAMES])
-        self.torso_geom = gid("torso")
         k = physics.slots_per_leg
         self.leg_slot_geoms = np.array([[gid(f"slot_{n}_{j}") for j in range(k)] for n in LEG_NAMES],
                                        dtype=int).reshape(N_LEGS, k)

@@ -104,10 +104,6 @@ class RobotSpec:
         """Height of the coxa joints (torso mid-plane) above flat ground in the neutral stance, m."""
         return self.body_clearance + 0.5 * self.body_thickness
 
-    @property
-    def leg_reach(self) -> float:
-        return self.femur_length + self.tibia_length
-
 
 # Mounting geometry ------------------------------------------------------------------------------
 def hip_positions(spec: RobotSpec) -> np.ndarray:
