@@ -120,6 +120,15 @@ def test_cli_reports_bad_input_before_any_work(capsys, tmp_path):
     for argv, said in ((["bench", "--grad", "--seconds", "1"], "--seconds: sets the forward benchmark, not --grad"),
                        (["bench", "--backward", "forward"], "--backward: sets the gradient benchmark: add --grad")):
         assert main(argv) == 2 and said in capsys.readouterr().err, argv
+    # that check reads two hand lists beside configs/commands/bench.yaml: a flag added to the file and to
+    # neither list would be ignored again without a word, so every flag must be in one list or used by both
+    from hexjax.experiments import bench
+    both = {"batches", "repeats", "grad", "json"}
+    names = {o.name for o in commands()["bench"].options}
+    assert not set(bench.FORWARD_ONLY) & set(bench.GRAD_ONLY)
+    unsorted = names - set(bench.FORWARD_ONLY) - set(bench.GRAD_ONLY) - both
+    assert not unsorted, f"bench.yaml's flags in neither FORWARD_ONLY nor GRAD_ONLY: {sorted(unsorted)}"
+    assert set(bench.FORWARD_ONLY) | set(bench.GRAD_ONLY) | both <= names  # and no list names a flag gone
 
 
 def test_out_of_memory_is_one_line_naming_the_sizes(capsys, monkeypatch):
