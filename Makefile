@@ -36,8 +36,8 @@ test: setup
 	$(PYTEST) tests
 
 # the same suite in two halves that together run every test once: the four files whose gradient checks
-# hold most of a cold run's compile, and the rest; each half alone fits 12 minutes from an empty cache on
-# 2 cores, the whole suite does not (docs/testing.md), so two CI jobs could run one each
+# hold most of a cold run's compile, and the rest; on the faster 2-core VM (AVX-512) each half alone fits
+# 12 minutes from an empty cache, the whole suite does not (docs/testing.md), so two CI jobs could run one each
 GRAD_TESTS := tests/test_tune.py tests/test_forward_mode.py tests/test_implicit.py tests/test_windows.py
 test-core: setup
 	$(PYTEST) $(addprefix --ignore=,$(GRAD_TESTS)) tests
