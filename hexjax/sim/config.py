@@ -11,9 +11,18 @@ import math
 from typing import Optional
 
 
+CONES = ("pyramidal", "elliptic")
+INTEGRATORS = ("euler", "implicitfast")
+MAX_ITERATIONS = 10_000  # Newton iterations per physics step; MuJoCo's docs: ~5 suffice, rarely more than 20
+
+
 @dataclasses.dataclass(frozen=True)
 class PhysicsConfig:
-    """Solver settings (Playground-like: one Newton iteration, few line-search steps)."""
+    """Solver settings of one model, MuJoCo's `<option>` plus hexjax's terrain culling (`hexjax.sim.model`).
+
+    The defaults are the `fast` physics preset (configs/physics/fast.yaml): two Newton iterations, MJX's
+    pyramidal cone. Results are reported on the `validated` preset (`hexjax.sim.physics.get_physics`), whose
+    every figure is within the fidelity contract of converged MuJoCo C (docs/physics.md)."""
 
     timestep: float = 0.005  # s
     iterations: int = 2  # 1 lets six stance feet chatter (measured: torso hops, 1.5 of 6 feet in contact)
@@ -22,16 +31,33 @@ class PhysicsConfig:
     cone: str = "pyramidal"
     slots_per_leg: int = 2
     torso_slots: int = 2
+    tolerance: float = 1e-8  # MuJoCo's opt.tolerance: the Newton loop stops once its relative improvement is below
+    ls_tolerance: float = 0.01  # MuJoCo's opt.ls_tolerance: the line search's stopping rule
+    impratio: float = 1.0  # MuJoCo's opt.impratio: frictional over normal constraint impedance (elliptic cone)
 
     def validate(self) -> None:
-        if not (0 < self.timestep <= 0.02):
+        num = lambda v: isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+        whole = lambda v: isinstance(v, int) and not isinstance(v, bool)
+        if not (num(self.timestep) and 0 < self.timestep <= 0.02):
             raise ValueError(f"physics.timestep={self.timestep!r}: must be in (0, 0.02] s")
-        if self.iterations < 1 or self.ls_iterations < 1:
-            raise ValueError(f"physics.iterations={self.iterations!r}, ls_iterations={self.ls_iterations!r}: must be >= 1")
-        if self.integrator not in ("euler", "implicitfast"):
-            raise ValueError(f"physics.integrator={self.integrator!r}: use 'euler' or 'implicitfast'")
-        if self.slots_per_leg < 0 or self.torso_slots < 0:
-            raise ValueError(f"physics.slots_per_leg={self.slots_per_leg!r}, torso_slots={self.torso_slots!r}: must be >= 0")
+        for f in ("iterations", "ls_iterations"):
+            v = getattr(self, f)
+            if not (whole(v) and 1 <= v <= MAX_ITERATIONS):
+                raise ValueError(f"physics.{f}={v!r}: must be a whole number in [1, {MAX_ITERATIONS}]")
+        for f in ("tolerance", "ls_tolerance"):
+            v = getattr(self, f)
+            if not (num(v) and 0 < v < 1):
+                raise ValueError(f"physics.{f}={v!r}: must be a number in (0, 1)")
+        if not (num(self.impratio) and 0 < self.impratio <= 1000):
+            raise ValueError(f"physics.impratio={self.impratio!r}: must be a number in (0, 1000]")
+        if self.integrator not in INTEGRATORS:
+            raise ValueError(f"physics.integrator={self.integrator!r}: use one of {INTEGRATORS}")
+        if self.cone not in CONES:
+            raise ValueError(f"physics.cone={self.cone!r}: use one of {CONES}")
+        for f in ("slots_per_leg", "torso_slots"):
+            v = getattr(self, f)
+            if not (whole(v) and 0 <= v <= 16):
+                raise ValueError(f"physics.{f}={v!r}: must be a whole number in [0, 16]")
 
 
 def physics_for(kind: str, base: "PhysicsConfig | None" = None) -> "PhysicsConfig":

@@ -133,6 +133,7 @@ def build_mjcf(spec: RobotSpec, physics: PhysicsConfig, *, contact_sensors: bool
     return f"""<mujoco model="hexjax_{spec.name}">
   <compiler angle="radian" autolimits="true"/>
   <option timestep="{physics.timestep:.6g}" iterations="{physics.iterations}" ls_iterations="{physics.ls_iterations}"
+          tolerance="{physics.tolerance:.6g}" ls_tolerance="{physics.ls_tolerance:.6g}" impratio="{physics.impratio:.6g}"
           solver="Newton" cone="{physics.cone}" integrator="{ {"euler": "Euler", "implicitfast": "implicitfast"}[physics.integrator]}">
     <flag eulerdamp="disable"/>
   </option>

@@ -191,7 +191,7 @@ def rollout(robot: RobotSpec, terrain: Terrain, controller: Controller, params, 
              observations come from MuJoCo contact sensors in the model.
       'c'    MuJoCo C on `nthread` host threads (default: all cores) through `mujoco.rollout`, every terrain
              box a static body found by MuJoCo's broadphase; the controller runs in JAX between control steps
-             (`hexjax.sim.backends.mujoco_c`). Forward only; no traces (record=False).
+             (`hexjax.sim.backends.mujoco_c`). Forward only; of the traces only the torso's (`record`).
 
     robot: RobotSpec; terrain: batched Terrain from `hexjax.world.terrain.sample`; controller: a
     `hexjax.control.Controller`; params: its params pytree (shared, or batched with leading axis B when

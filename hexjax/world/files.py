@@ -14,7 +14,8 @@ from pathlib import Path
 from typing import Any, Dict, List, Mapping, Optional
 
 KINDS = {"robots": "robot preset", "terrains": "terrain preset", "experiments": "experiment",
-         "commands": "command", "tune": "tune config", "sensors": "sensor preset"}
+         "commands": "command", "tune": "tune config", "sensors": "sensor preset",
+         "physics": "physics preset"}
 
 
 def config_dir() -> Path:

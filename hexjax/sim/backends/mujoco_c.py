@@ -13,8 +13,9 @@ How it differs from the MJX path, and why:
   of one control step (dt / timestep substeps) is one `Rollout.rollout` call over the chunk.
 - The summary is folded by `hexjax.sim.step.accumulate`, the MJX rollout's own arithmetic, in float32 (MuJoCo
   C's state is float64).
-- Forward only (no gradients), no per-step traces. At the very first control step the sensors read zero (no
-  step has run yet); with the default settle time that step is a settling step, whose action is fixed.
+- Forward only (no gradients). Of the per-step traces only the torso's (`Summary.trace`: x, y, z, yaw) is kept
+  (`RolloutConfig.record`). At the very first control step the sensors read zero (no step has run yet); with the
+  default settle time that step is a settling step, whose action is fixed.
 """
 
 from __future__ import annotations
@@ -37,7 +38,7 @@ from hexjax.sim.config import PhysicsConfig, RolloutConfig, SensorConfig
 from hexjax.sim.mjcf import PARKED_Z, build_mjcf, compile_mjcf, sensor_layout
 from hexjax.sim.model import actuator_forces, obs_from_sensordata
 from hexjax.sim.perturb import MIN_FRICTION
-from hexjax.sim.step import Summary, accumulate, end_pose, init_acc, settle_steps, substeps
+from hexjax.sim.step import Summary, accumulate, end_pose, init_acc, settle_steps, slip, substeps
 from hexjax.world.robot import RobotSpec
 
 _FULL = mujoco.mjtState.mjSTATE_FULLPHYSICS
@@ -141,9 +142,8 @@ def rollout_c(robot: RobotSpec, terrain, controller, params, n_ctrl: int, key, *
     seconds spent compiling the controller step). nthread: MuJoCo threads (default: all cores); chunk: envs
     per pass (bounds memory; the controller is compiled once for this size). perturbation: a batched
     `Perturbation`, applied as on the MJX path: its model fields in each env's MjModel, its sensing and action
-    effects by `hexjax.sim.perturb` in the controller step."""
-    if config.record:
-        raise ValueError("backend='c' keeps no per-step traces: use RolloutConfig(record=False) or backend='mjx'")
+    effects by `hexjax.sim.perturb` in the controller step. With `config.record` the torso trace (x, y, z, yaw per
+    control step of the walk) is kept; the other traces are MJX's alone."""
     nthread = int(nthread or os.cpu_count() or 1)
     if nthread < 1:
         raise ValueError(f"nthread={nthread!r}: must be >= 1")
@@ -172,7 +172,7 @@ def rollout_c(robot: RobotSpec, terrain, controller, params, n_ctrl: int, key, *
     step_fn, init_fn, ctrl0_fn = _controller_fns(controller, sensors, 0 if params_batched else None,
                                                  perturbation is not None, n_settle)
     pert_all = None if perturbation is None else jax.device_get(perturbation)
-    acc_fn = _accumulator(config, controller.dt, n_settle)
+    acc_fn = _accumulator(config, controller.dt, n_settle, robot)
 
     outs = []
     compile_s = 0.0
@@ -202,6 +202,7 @@ def rollout_c(robot: RobotSpec, terrain, controller, params, n_ctrl: int, key, *
             sens = np.zeros((chunk, m0.nsensordata))
             st_out = np.empty((chunk, n_sub, tp.nstate))
             sd_out = np.empty((chunk, n_sub, m0.nsensordata))
+            poses = []
             acc = jax.vmap(init_acc)(jnp.stack([jnp.zeros(chunk), jnp.zeros(chunk), jnp.asarray(yw, jnp.float32)], -1))
             gz = jnp.asarray(ground_z[idx], jnp.float32)
             extra = () if pert is None else (pert, pstate, ctrl0.astype(np.float32))
@@ -213,7 +214,7 @@ def rollout_c(robot: RobotSpec, terrain, controller, params, n_ctrl: int, key, *
             for i in range(n_settle + n_ctrl):
                 q, v = state[:, 1:1 + nq], state[:, 1 + nq:1 + nq + nv]
                 if pert is None:
-                    new_cstate, action, tactile = step_fn(prm, cstate, q, v, sens, state[:, 0], np.int32(i))
+                    new_cstate, action, tactile, contact = step_fn(prm, cstate, q, v, sens, state[:, 0], np.int32(i))
                     if i >= n_settle:
                         cstate = new_cstate
                         action = np.asarray(action, np.float64)
@@ -226,8 +227,8 @@ def rollout_c(robot: RobotSpec, terrain, controller, params, n_ctrl: int, key, *
                         if float(pert.fault_time[e]) <= t_walk < float(pert.fault_time[e]) + controller.dt:
                             _gains(tp, models[e], np.where(np.arange(nu) // 3 == int(pert.fault_leg[e]), 0.0,
                                                            float(pert.kp_scale[e])))
-                    cstate, pstate, action, tactile = step_fn(prm, cstate, q, v, sens, state[:, 0], np.int32(i),
-                                                              *extra[:1], pstate, extra[2])
+                    cstate, pstate, action, tactile, contact = step_fn(prm, cstate, q, v, sens, state[:, 0],
+                                                                       np.int32(i), *extra[:1], pstate, extra[2])
                     action = np.asarray(action, np.float64)
                 control = np.repeat(action[:, None, :], n_sub, axis=1)
                 pool.rollout(models, datas, state, control, control_spec=mujoco.mjtState.mjSTATE_CTRL,
@@ -237,19 +238,25 @@ def rollout_c(robot: RobotSpec, terrain, controller, params, n_ctrl: int, key, *
                 power = np.abs(actuator_forces(sd_out) * st_out[..., 1 + nq + 6:1 + nq + nv]).sum((1, 2))
                 new_state = np.where(finite[:, None], new_state, state)
                 acc = acc_fn(acc, i, q.astype(np.float32), new_state[:, 1:1 + nq].astype(np.float32), finite,
-                             (power * dt).astype(np.float32), tactile, gz)
+                             (power * dt).astype(np.float32), tactile, gz, contact)
                 state = new_state
+                if config.record and i >= n_settle:
+                    w, x, y, z = new_state[:, 4:8].T
+                    yaw = np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+                    poses.append(np.concatenate([new_state[:, 1:4], yaw[:, None]], 1))
                 sens = np.where(finite[:, None], sd_out[:, -1], sens)
                 if progress:
                     bar.update(1)
-            outs.append((acc, cstate, state[:, 1:1 + nq].astype(np.float32)))
+            trace = np.stack(poses, 1).astype(np.float32) if config.record else None
+            outs.append((acc, cstate, state[:, 1:1 + nq].astype(np.float32), trace))
     if progress:
         bar.close()
     cat = lambda *xs: jnp.concatenate(xs)[:b]
     acc = jax.tree_util.tree_map(cat, *[o[0] for o in outs])
     final = jax.tree_util.tree_map(cat, *[o[1] for o in outs])
     q_end = cat(*[o[2] for o in outs])
-    return Summary(end_pose=end_pose(q_end), final_state=final, **acc), compile_s
+    trace = cat(*[o[3] for o in outs]) if config.record else None
+    return Summary(end_pose=end_pose(q_end), final_state=final, trace=trace, **acc), compile_s
 
 
 @functools.lru_cache(maxsize=16)
@@ -262,7 +269,7 @@ def _controller_fns(controller, sensors: SensorConfig, p_axis, perturbed: bool =
         obs = obs_from_sensordata(sensors, qpos.astype(jnp.float32), qvel.astype(jnp.float32),
                                   sens.astype(jnp.float32), t.astype(jnp.float32))
         new, action = controller.step(params, cstate, obs)
-        return new, action, obs.tactile
+        return new, action, obs.tactile, obs.foot_contact
 
     def step_perturbed(params, cstate, qpos, qvel, sens, t, i, pert, pstate, ctrl0):
         obs = obs_from_sensordata(sensors, qpos.astype(jnp.float32), qvel.astype(jnp.float32),
@@ -273,7 +280,7 @@ def _controller_fns(controller, sensors: SensorConfig, p_axis, perturbed: bool =
         action = jnp.where(walking, action, ctrl0)
         cstate = jax.tree_util.tree_map(lambda a, b: jnp.where(walking, a, b), new, cstate)
         pstate, action = perturb.act(pstate, action, obs.qpos, pert, t_walk)
-        return cstate, pstate, action, obs.tactile
+        return cstate, pstate, action, obs.tactile, obs.foot_contact
 
     if perturbed:
         step_b = jax.jit(jax.vmap(step_perturbed, in_axes=(p_axis, 0, 0, 0, 0, 0, None, 0, 0, 0)))
@@ -286,9 +293,11 @@ def _controller_fns(controller, sensors: SensorConfig, p_axis, perturbed: bool =
 
 
 @functools.lru_cache(maxsize=16)
-def _accumulator(config: RolloutConfig, ctrl_dt: float, n_settle: int):
-    """`hexjax.sim.step.accumulate` over a chunk of envs (the MJX rollout's own summary arithmetic)."""
-    def one(acc, i, q_old, q_new, finite, energy, tactile, ground_z):
-        return accumulate(acc, config, i, n_settle, ctrl_dt, q_old, q_new, finite, energy, tactile, ground_z)
+def _accumulator(config: RolloutConfig, ctrl_dt: float, n_settle: int, robot: RobotSpec):
+    """`hexjax.sim.step.accumulate` over a chunk of envs (the MJX rollout's own summary arithmetic), foot slip
+    included (`hexjax.sim.step.slip`, from the feet in contact at the step's start)."""
+    def one(acc, i, q_old, q_new, finite, energy, tactile, ground_z, contact):
+        return accumulate(acc, config, i, n_settle, ctrl_dt, q_old, q_new, finite, energy, tactile, ground_z,
+                          slip(robot, q_old, q_new, contact))
 
-    return jax.jit(jax.vmap(one, in_axes=(0, None, 0, 0, 0, 0, 0, 0)))
+    return jax.jit(jax.vmap(one, in_axes=(0, None, 0, 0, 0, 0, 0, 0, 0)))

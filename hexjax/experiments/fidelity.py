@@ -1,0 +1,406 @@
+"""`hexjax fidelity`: how far one physics preset's figures are from another's (default: `validated` against
+`reference`, converged MuJoCo C) over a matrix of scenarios, with the contract every reported figure must meet.
+
+The matrix (configs/commands/fidelity.yaml, `preset:`): flat ground and the four Luneckas 2020 categories;
+every terrain family at three difficulties; the friction coefficients on an obstacle field and on a slope; a
+payload. The gait and the tactile switch (Luneckas 2020) walk every cell, the Yu 2019 CPG the flat, step and
+ditch cells, the Zhao 2018 avoiding gait the box cells. Both presets see the same terrains, heading draws and
+perturbation draws (common random numbers), so each env is a pair and every difference is reported with a
+paired 95 % interval.
+
+Per cell: success (upright, within 10 cm of the goal), mean advance, lateral drift |dy|, heading error |d alpha|,
+falls and foot slip (cm per m walked), for both presets, and the differences. The contract: |d success| <= 5
+points, |d mean advance| <= 1.5 cm, |d heading| <= 1.5 deg (`CONTRACT`). Besides the walks, open-loop replays
+(the Luneckas 2020 gait, whose joint targets do not read the sensors, so both engines get the same targets)
+give the torso's divergence after 0.5, 1 and 2 s.
+
+All cells of one controller that share a physics configuration (terrain slot count) run as the envs of one
+rollout call: terrains padded to one box count, friction and payload as per-env draws. Finished rollouts are kept
+beside the JSON (`<json>.partial.json`); a rerun of the same command resumes after them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import math
+import os
+from typing import Dict, List, Optional
+
+import numpy as np
+
+CONTRACT = {"success_pts": 5.0, "advance_cm": 1.5, "heading_deg": 1.5}
+ALL = "all"
+
+
+@dataclasses.dataclass(frozen=True)
+class Cell:
+    """One scenario: a terrain preset (at a difficulty, or as written), a friction coefficient (None: the robot's
+    own) and a payload on the torso (kg)."""
+
+    terrain: str
+    difficulty: Optional[float] = None
+    friction: Optional[float] = None
+    payload: float = 0.0
+
+    @property
+    def name(self) -> str:
+        out = self.terrain + (f" d={self.difficulty:g}" if self.difficulty is not None else "")
+        if self.friction is not None:
+            out += f" mu={self.friction:g}"
+        if self.payload:
+            out += f" +{self.payload:g} kg"
+        return out
+
+
+def matrix(spec: Dict) -> List[Cell]:
+    """The cells of the matrix block `spec` (see configs/commands/fidelity.yaml), each once, in order."""
+    cells: List[Cell] = []
+    add = lambda c: cells.append(c) if c not in cells else None
+    for t in spec.get("terrains", []):
+        add(Cell(t))
+    for t in spec.get("families", []):
+        for d in spec.get("difficulties", []):
+            add(Cell(t, difficulty=float(d)))
+    for t in spec.get("friction_terrains", []):
+        for f in spec.get("frictions", []):
+            add(Cell(t, friction=None if float(f) == 1.0 else float(f)))
+    for t in spec.get("payload_terrains", []):
+        for p in spec.get("payloads", []):
+            add(Cell(t, payload=float(p)))
+    return cells
+
+
+def paired(a, b):
+    """(mean of a - b, 95 % interval (lo, hi)) of paired samples, normal approximation; (nan, nan, nan) if empty."""
+    d = np.asarray(a, float) - np.asarray(b, float)
+    d = d[np.isfinite(d)]
+    if d.size == 0:
+        return math.nan, (math.nan, math.nan)
+    m = float(d.mean())
+    half = 1.96 * float(d.std(ddof=1)) / math.sqrt(d.size) if d.size > 1 else math.inf
+    return m, (m - half, m + half)
+
+
+def _digest(o, presets) -> str:
+    keys = ("batch", "distance", "seed", "controllers", "only", "robot", "refine", "backend")
+    blob = {k: getattr(o, k, None) for k in keys}
+    blob["presets"] = presets
+    return hashlib.sha256(json.dumps(blob, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def _presets(o):
+    """(A, B, backend of A): the preset under test and the one it is held against. With --refine, B is
+    --against itself and A the same with its timestep halved and its iterations doubled (is it converged?)."""
+    from hexjax.sim.physics import get_physics
+    b = get_physics(o.against)
+    if o.refine:
+        a = get_physics(b, timestep=b.timestep / 2, iterations=2 * b.iterations,
+                        ls_iterations=2 * b.ls_iterations, name=f"{b.name}-refined")
+        return a, b, b.backend
+    a = get_physics(o.physics)
+    return a, b, (o.backend or a.backend)
+
+
+def _runs(o, cells: List[Cell], controllers: Dict, kinds: Dict[str, str], entry_preset: Dict):
+    """[(label, controller, robot, duration, [cell indices])]: which cells each controller walks."""
+    from hexjax.experiments.robustness import _duration
+    allowed = entry_preset.get("controllers", {})
+    out = []
+    for label, (ctrl, rb) in controllers.items():
+        which = allowed.get(label, allowed.get(label.partition("@")[0], ALL))
+        idx = [i for i, c in enumerate(cells) if which == ALL or kinds[c.terrain] in which]
+        if idx:
+            ctrl, duration = _duration(ctrl, o.distance)
+            out.append((label, ctrl, rb, duration, idx))
+    return out
+
+
+def _cell_inputs(o, cell: Cell, j: int, rb, label: str, ctrl, key):
+    """(terrain spec, terrain batch, perturbation batch, params or None) of cell j for one controller; the draws
+    depend on (seed, j) alone, so both presets and every controller see the same ones."""
+    import jax
+
+    from hexjax.control.tactile import overcome_height
+    from hexjax.experiments.robustness import HEIGHT_KINDS, _avoid_params
+    from hexjax.tune.space import with_values
+    from hexjax.world.presets import get_terrain
+    from hexjax.world.randomization import randomization_from_dict, sample_perturbation
+    from hexjax.world.terrain import leg_scale, sample
+    spec = get_terrain(cell.terrain, length=o.distance + 0.3)
+    if cell.difficulty is not None:
+        spec = spec.at_difficulty(cell.difficulty, leg_scale(rb))
+    k_t, k_p = jax.random.split(jax.random.fold_in(key, j))
+    terr = sample(spec, k_t, o.batch)
+    rnd = {"payload_kg": cell.payload}
+    if cell.friction is not None:
+        rnd["friction"] = cell.friction
+    pert = sample_perturbation(randomization_from_dict(rnd), k_p, o.batch)
+    kind = label.partition("@")[0]
+    params = None
+    if kind == "tactile":
+        p = ctrl.default_params()
+        if spec.kind in HEIGHT_KINDS:
+            p = with_values(p, {"overcome_height": overcome_height(spec.height_range[1])})
+        params = jax.tree_util.tree_map(lambda x: np.broadcast_to(np.asarray(x), (o.batch,) + np.shape(x)), p)
+    elif kind == "avoid":
+        params = _avoid_params(ctrl, terr, spec.kind, o.distance)
+    return spec, terr, pert, params
+
+
+def _walk(o, preset, backend: str, label: str, ctrl, rb, duration: float, idx: List[int], cells: List[Cell], key,
+          mesh_for) -> Dict[str, List]:
+    """Per-env outcomes (lists, cells in `idx` order, `o.batch` envs each) of one controller under one preset:
+    one rollout call per group of cells that share a physics configuration."""
+    import jax
+
+    from hexjax.experiments.metrics import goal_errors
+    from hexjax.sim.config import RolloutConfig
+    from hexjax.sim.rollout import rollout
+    from hexjax.world.randomization import concat_perturbations
+    from hexjax.world.terrain import pad_terrain
+    inputs = {j: _cell_inputs(o, cells[j], j, rb, label, ctrl, key) for j in idx}
+    # grouped by the terrain's own slot count, whatever the preset does with it, so that both presets split the
+    # cells alike and every env gets the same heading draw under both
+    groups: Dict = {}
+    for j in idx:
+        groups.setdefault(inputs[j][0].slots_per_leg, []).append(j)
+    per_cell = {}
+    for js in groups.values():
+        physics = preset.config(inputs[js[0]][0], kind="mixed")
+        n_box = max(inputs[j][1].box_pos.shape[1] for j in js)
+        cat = lambda *xs: jax.tree_util.tree_map(lambda *a: np.concatenate([np.asarray(x) for x in a]), *xs)
+        terr = cat(*[pad_terrain(inputs[j][1], n_box) for j in js])
+        pert = concat_perturbations([inputs[j][2] for j in js])
+        batched = inputs[js[0]][3] is not None
+        params = cat(*[inputs[j][3] for j in js]) if batched else ctrl.default_params()
+        s = rollout(rb, terr, ctrl, params, duration, jax.random.fold_in(key, 10_000 + js[0]), physics=physics,
+                    config=RolloutConfig(), perturbation=pert, params_batched=batched, backend=backend,
+                    mesh=mesh_for(len(js) * o.batch) if backend == "mjx" else None)
+        e = goal_errors(s, o.distance)
+        cols = dict(success=e.success, advance=e.advance, dy=e.dy, dalpha=e.dalpha, fell=s.fell, nan=s.nan,
+                    slip=s.foot_slip, path=s.path_length)
+        cols = {k: np.asarray(v, float) for k, v in cols.items()}
+        for n, j in enumerate(js):
+            per_cell[j] = {k: v[n * o.batch:(n + 1) * o.batch].tolist() for k, v in cols.items()}
+    return {str(j): per_cell[j] for j in idx}
+
+
+def _replay(o, preset, backend: str, spec: Dict, key, robot) -> Dict[str, List]:
+    """Torso traces (x, y, z, yaw) at the replay times of the open-loop Luneckas 2020 gait on the replay cells,
+    under one preset: {cell name: (B, times, 4) as lists}."""
+    import jax
+
+    from hexjax.control.gait import GaitController
+    from hexjax.sim.config import RolloutConfig
+    from hexjax.sim.rollout import rollout
+    from hexjax.world.presets import get_terrain
+    from hexjax.world.randomization import randomization_from_dict, sample_perturbation
+    from hexjax.world.terrain import sample
+    ctrl = GaitController(robot)
+    times = [float(t) for t in spec["times"]]
+    steps = [int(round(t / ctrl.dt)) - 1 for t in times]
+    out = {}
+    for j, (t_name, f) in enumerate((t, f) for t in spec["terrains"] for f in spec["frictions"]):
+        cell = Cell(t_name, friction=None if float(f) == 1.0 else float(f))
+        tspec = get_terrain(t_name, length=o.distance + 0.3)
+        k_t, k_p, k_r = jax.random.split(jax.random.fold_in(key, 20_000 + j), 3)
+        terr = sample(tspec, k_t, o.batch)
+        rnd = {} if cell.friction is None else {"friction": cell.friction}
+        pert = sample_perturbation(randomization_from_dict(rnd), k_p, o.batch)
+        s = rollout(robot, terr, ctrl, ctrl.default_params(), max(times), k_r, physics=preset.config(tspec),
+                    config=RolloutConfig(record=True), perturbation=pert, backend=backend)
+        out[cell.name] = np.asarray(s.trace)[:, steps].tolist()
+    return out
+
+
+def _compare(cells: List[Cell], runs, res_a: Dict, res_b: Dict) -> List[Dict]:
+    """One row per (controller, cell): both presets' figures and the paired differences, with the verdict."""
+    rows = []
+    for label, _, _, _, idx in runs:
+        for j in idx:
+            a, b = res_a[label][str(j)], res_b[label][str(j)]
+            A = {k: np.asarray(v, float) for k, v in a.items()}
+            B = {k: np.asarray(v, float) for k, v in b.items()}
+            ds, ds_ci = paired(100 * A["success"], 100 * B["success"])
+            da, da_ci = paired(100 * A["advance"], 100 * B["advance"])
+            dy, dy_ci = paired(100 * np.abs(A["dy"]), 100 * np.abs(B["dy"]))
+            dh, dh_ci = paired(np.degrees(np.abs(A["dalpha"])), np.degrees(np.abs(B["dalpha"])))
+            df, df_ci = paired(100 * A["fell"], 100 * B["fell"])
+            per_m = lambda r: float(np.nanmean(100 * r["slip"] / np.maximum(r["path"], 0.05)))
+            row = dict(controller=label, cell=cells[j].name, n=int(A["success"].size),
+                       success_pct=[100 * float(A["success"].mean()), 100 * float(B["success"].mean())],
+                       advance_cm=[100 * float(np.nanmean(A["advance"])), 100 * float(np.nanmean(B["advance"]))],
+                       drift_cm=[100 * float(np.nanmean(np.abs(A["dy"]))), 100 * float(np.nanmean(np.abs(B["dy"])))],
+                       heading_deg=[float(np.degrees(np.nanmean(np.abs(A["dalpha"])))),
+                                    float(np.degrees(np.nanmean(np.abs(B["dalpha"]))))],
+                       fall_pct=[100 * float(A["fell"].mean()), 100 * float(B["fell"].mean())],
+                       nan=[int(A["nan"].sum()), int(B["nan"].sum())],
+                       slip_cm_per_m=[per_m(A), per_m(B)],
+                       d_success_pts=ds, d_success_ci=list(ds_ci), d_advance_cm=da, d_advance_ci=list(da_ci),
+                       d_drift_cm=dy, d_drift_ci=list(dy_ci), d_heading_deg=dh, d_heading_ci=list(dh_ci),
+                       d_fall_pts=df, d_fall_ci=list(df_ci))
+            row["within"] = bool(abs(ds) <= CONTRACT["success_pts"] and abs(da) <= CONTRACT["advance_cm"]
+                                 and abs(dh) <= CONTRACT["heading_deg"])
+            # a miss the pairing cannot tell from sampling noise: the contract band overlaps the 95 % interval
+            row["within_ci"] = bool(ds_ci[0] <= CONTRACT["success_pts"] and ds_ci[1] >= -CONTRACT["success_pts"]
+                                    and da_ci[0] <= CONTRACT["advance_cm"] and da_ci[1] >= -CONTRACT["advance_cm"]
+                                    and dh_ci[0] <= CONTRACT["heading_deg"] and dh_ci[1] >= -CONTRACT["heading_deg"])
+            rows.append(row)
+    return rows
+
+
+def _replay_rows(times, rep_a: Dict, rep_b: Dict) -> List[Dict]:
+    rows = []
+    for name in rep_a:
+        a, b = np.asarray(rep_a[name]), np.asarray(rep_b[name])
+        pos = 100 * np.linalg.norm(a[..., :3] - b[..., :3], axis=-1)  # (B, times) cm
+        yaw = np.degrees(np.abs(np.arctan2(np.sin(a[..., 3] - b[..., 3]), np.cos(a[..., 3] - b[..., 3]))))
+        rows.append(dict(cell=name, times_s=list(times), position_cm_mean=pos.mean(0).tolist(),
+                         position_cm_max=pos.max(0).tolist(), yaw_deg_mean=yaw.mean(0).tolist(),
+                         yaw_deg_max=yaw.max(0).tolist()))
+    return rows
+
+
+def run(o, entry) -> Dict:
+    from hexjax.experiments.robustness import _controllers, _host_devices
+    if not (isinstance(o.batch, int) and o.batch >= 1):
+        raise ValueError(f"--batch={o.batch!r}: must be a whole number >= 1")
+    spec = entry.preset
+    cells = matrix(spec)
+    if o.only:
+        cells = [c for c in cells if any(s in c.name for s in o.only)]
+        if not cells:
+            raise ValueError(f"--only {','.join(o.only)}: no cell of the matrix matches; cells: "
+                             + ", ".join(c.name for c in matrix(spec)))
+    a, b, backend_a = _presets(o)
+    _host_devices()
+    import jax
+    from tqdm.auto import tqdm
+
+    from hexjax.sim.rollout import make_mesh
+    from hexjax.world.presets import get_robot, get_terrain
+    robot = get_robot(o.robot)
+    kinds = {t: get_terrain(t).kind for t in {c.terrain for c in cells}}
+    controllers = _controllers(o.controllers, robot)
+    runs = _runs(o, cells, controllers, kinds, spec)
+
+    def mesh_for(n):
+        n_dev = max(d for d in range(1, len(jax.devices()) + 1) if n % d == 0)
+        return make_mesh(jax.devices()[:n_dev]) if n_dev > 1 else None
+
+    presets = {"a": a.record(backend_a), "b": b.record()}
+    digest = _digest(o, presets)
+    partial = (o.json + ".partial.json") if o.json else ""
+    done: Dict = {}
+    if partial and os.path.exists(partial):
+        with open(partial) as f:
+            saved = json.load(f)
+        if saved.get("digest") == digest:
+            done = saved["runs"]
+    key = jax.random.PRNGKey(o.seed)
+    rep = spec.get("replay") if not o.only else None
+    jobs = [(label, side) for label, *_ in runs for side in ("b", "a")]
+    if rep:
+        jobs += [("replay", "b"), ("replay", "a")]
+    bar = tqdm(jobs, desc="fidelity", unit="rollout", disable=not getattr(o, "progress", True))
+    try:
+        for label, side in bar:
+            tag = f"{label}|{side}"
+            preset, backend = (a, backend_a) if side == "a" else (b, b.backend)
+            bar.set_postfix_str(f"{label} on {preset.name} ({backend})")
+            if tag in done:
+                continue
+            if label == "replay":
+                done[tag] = _replay(o, preset, backend, rep, key, robot)
+            else:
+                _, ctrl, rb, duration, idx = next(r for r in runs if r[0] == label)
+                done[tag] = _walk(o, preset, backend, label, ctrl, rb, duration, idx, cells, key, mesh_for)
+            if partial:
+                with open(partial, "w") as f:
+                    json.dump({"digest": digest, "runs": done}, f)
+    except KeyboardInterrupt:
+        kept = f"{len(done)} of {len(jobs)} rollouts kept in {partial}; run the same command to resume" if partial \
+            else "nothing kept (no --json)"
+        raise KeyboardInterrupt(f"hexjax fidelity interrupted: {kept}") from None
+    res_a = {label: done[f"{label}|a"] for label, *_ in runs}
+    res_b = {label: done[f"{label}|b"] for label, *_ in runs}
+    rows = _compare(cells, runs, res_a, res_b)
+    replay = _replay_rows(rep["times"], done["replay|a"], done["replay|b"]) if rep else []
+    worst = lambda k: max((abs(r[k]) for r in rows), default=math.nan)
+    return {"config": dict(batch=o.batch, distance_m=o.distance, seed=o.seed, robot=robot.name,
+                           controllers=[r[0] for r in runs], cells=[c.name for c in cells], refine=o.refine,
+                           durations_s={r[0]: r[3] for r in runs}, device=jax.default_backend()),
+            "physics": presets["a"], "against": presets["b"], "contract": CONTRACT, "cells": rows, "replay": replay,
+            "summary": dict(rows=len(rows), within=sum(r["within"] for r in rows),
+                            within_ci=sum(r["within_ci"] for r in rows),
+                            worst_success_pts=worst("d_success_pts"), worst_advance_cm=worst("d_advance_cm"),
+                            worst_heading_deg=worst("d_heading_deg"))}
+
+
+def report(res: Dict) -> str:
+    c, s = res["config"], res["summary"]
+    pa, pb = res["physics"], res["against"]
+    head = (f"{'controller':<11} {'cell':<26} {'succ % A/B':>12} {'d succ (95 % CI)':>22} {'d adv cm':>9} "
+            f"{'d head deg':>10} {'d drift cm':>10} {'fall % A/B':>11} {'slip cm/m A/B':>14}  ok")
+    lines = [f"\nfidelity: {pa['name']} ({pa['backend']}) against {pb['name']} ({pb['backend']}), {c['batch']} envs per "
+             f"cell, {c['distance_m']:g} m, seed {c['seed']}",
+             f"contract: |d success| <= {CONTRACT['success_pts']:g} points, |d mean advance| <= "
+             f"{CONTRACT['advance_cm']:g} cm, |d heading| <= {CONTRACT['heading_deg']:g} deg (A - B)", head,
+             "-" * len(head)]
+    for r in res["cells"]:
+        lo, hi = r["d_success_ci"]
+        ok = "yes" if r["within"] else ("ci" if r["within_ci"] else "NO")
+        lines.append(f"{r['controller']:<11} {r['cell']:<26} {r['success_pct'][0]:5.1f}/{r['success_pct'][1]:5.1f} "
+                     f"{r['d_success_pts']:+6.1f} ({lo:+6.1f}, {hi:+6.1f}) {r['d_advance_cm']:+9.2f} "
+                     f"{r['d_heading_deg']:+10.2f} {r['d_drift_cm']:+10.2f} {r['fall_pct'][0]:5.1f}/{r['fall_pct'][1]:5.1f} "
+                     f"{r['slip_cm_per_m'][0]:6.1f}/{r['slip_cm_per_m'][1]:6.1f}  {ok}")
+    lines.append(f"{s['within']} of {s['rows']} cells within the contract ({s['within_ci']} with the band inside "
+                 f"their 95 % intervals); worst |d success| {s['worst_success_pts']:.1f} points, |d advance| "
+                 f"{s['worst_advance_cm']:.2f} cm, |d heading| {s['worst_heading_deg']:.2f} deg")
+    lines.append("ok: yes within the contract; ci: outside it, but the contract band meets the paired 95 % interval "
+                 "(more envs decide); NO: outside it and its interval")
+    if res["replay"]:
+        lines.append("open-loop replay (the same joint targets): torso divergence A - B, mean (max) over envs")
+        for r in res["replay"]:
+            cols = ", ".join(f"{t:g} s {p:.2f} ({pm:.2f}) cm {y:.2f} deg" for t, p, pm, y in
+                             zip(r["times_s"], r["position_cm_mean"], r["position_cm_max"], r["yaw_deg_mean"]))
+            lines.append(f"  {r['cell']:<20} {cols}")
+    return "\n".join(lines)
+
+
+def plot(res: Dict, png: str) -> List[str]:
+    """Per cell and controller, the differences A - B with their paired 95 % intervals against the contract band."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    rows = res["cells"]
+    labels = [f"{r['controller']}: {r['cell']}" for r in rows]
+    y = np.arange(len(rows))
+    panels = (("d_success_pts", "d_success_ci", "success_pts", "d success (points)"),
+              ("d_advance_cm", "d_advance_ci", "advance_cm", "d mean advance (cm)"),
+              ("d_heading_deg", "d_heading_ci", "heading_deg", "d heading error (deg)"))
+    fig, axs = plt.subplots(1, 3, figsize=(15, 0.22 * len(rows) + 1.6), sharey=True)
+    for ax, (k, ci, band, title) in zip(axs, panels):
+        v = np.array([r[k] for r in rows])
+        lo = np.array([r[ci][0] for r in rows])
+        hi = np.array([r[ci][1] for r in rows])
+        ok = np.array([abs(x) <= CONTRACT[band] for x in v])
+        ax.axvspan(-CONTRACT[band], CONTRACT[band], color="tab:green", alpha=0.15, lw=0)
+        ax.errorbar(v, y, xerr=[np.clip(v - lo, 0, None), np.clip(hi - v, 0, None)], fmt="none", ecolor="0.6",
+                    lw=0.8)
+        ax.scatter(v[ok], y[ok], s=12, color="tab:green", zorder=3)
+        ax.scatter(v[~ok], y[~ok], s=14, color="tab:red", zorder=3)
+        ax.axvline(0, color="k", lw=0.6)
+        ax.set_title(title)
+        ax.grid(axis="x", alpha=0.3)
+    axs[0].set_yticks(y, labels, fontsize=7)
+    axs[0].invert_yaxis()
+    pa, pb = res["physics"], res["against"]
+    fig.suptitle(f"fidelity: {pa['name']} ({pa['backend']}) - {pb['name']} ({pb['backend']}), "
+                 f"{res['config']['batch']} envs per cell; green band: the contract")
+    fig.tight_layout()
+    fig.savefig(png, dpi=100)
+    plt.close(fig)
+    return [png]
