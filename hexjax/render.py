@@ -24,7 +24,8 @@ import numpy as np
 from hexjax.control.cpg import CPGController
 from hexjax.control.gait import GaitController
 from hexjax.control.tactile import TactileGaitController
-from hexjax.sim.config import PhysicsConfig, RolloutConfig, physics_for
+from hexjax.sim.config import PhysicsConfig, RolloutConfig
+from hexjax.sim.physics import get_physics, traced_backend
 from hexjax.sim.mjcf import build_mjcf
 from hexjax.sim.rollout import rollout
 from hexjax.world.presets import get_robot, get_terrain
@@ -158,10 +159,12 @@ def write_video(frames: np.ndarray, path: str, fps: float) -> str:
 
 def render_walk(robot_name: str = "luneckas2020", terrain_name: str = "high-large", controller: str = "tactile",
                 seconds: float = 4.0, seed: int = 0, envs: Sequence[int] = (0,), out: str = "out/walk.mp4",
-                width: int = 640, height: int = 480, every: int = 2, still: Optional[str] = None) -> dict:
+                width: int = 640, height: int = 480, every: int = 2, still: Optional[str] = None,
+                physics="validated") -> dict:
     """Roll out a small batch (max(envs) + 1 terrains of `terrain_name`) with recording, render each env of
     `envs` into `out` (one file per env: a `_envK` suffix when more than one) and optionally a PNG still of
-    the middle frame of the first. Returns what was written."""
+    the middle frame of the first. physics: the physics preset (on MJX: the video replays MJX's traces).
+    Returns what was written."""
     import imageio.v2 as imageio
     import jax
     envs = list(dict.fromkeys(envs))  # each env once, in the order given
@@ -171,13 +174,15 @@ def render_walk(robot_name: str = "luneckas2020", terrain_name: str = "high-larg
         raise ValueError(f"seconds={seconds!r}: must be > 0")
     rb = get_robot(robot_name)
     tspec = get_terrain(terrain_name)
-    physics = physics_for(tspec.kind, PhysicsConfig(slots_per_leg=tspec.slots_per_leg))
+    preset = get_physics(physics)
+    backend = traced_backend(preset, "joint traces for the video")
+    physics = preset.config(tspec)
     if controller not in CONTROLLERS:
         raise ValueError(f"controller={controller!r}: choose one of {sorted(CONTROLLERS)}")
     ctrl = CONTROLLERS[controller](rb)
     terrain = sample(tspec, jax.random.PRNGKey(seed), max(envs) + 1)
     s = rollout(rb, terrain, ctrl, ctrl.default_params(), seconds, jax.random.PRNGKey(seed + 1), physics=physics,
-                config=RolloutConfig(record=True))
+                config=RolloutConfig(record=True), backend=backend)
     s = jax.device_get(s)
     fps = 1.0 / (ctrl.dt * every)
     written = []
@@ -190,14 +195,15 @@ def render_walk(robot_name: str = "luneckas2020", terrain_name: str = "high-larg
             imageio.imwrite(still, frames[len(frames) // 2])
             written.append(still)
     return {"written": written, "frames_per_video": int(len(frames)), "fps": fps,
-            "tactile_steps": np.asarray(s.tactile_steps)[envs].tolist(), "fell": np.asarray(s.fell)[envs].tolist()}
+            "tactile_steps": np.asarray(s.tactile_steps)[envs].tolist(), "fell": np.asarray(s.fell)[envs].tolist(),
+            "physics": preset.record(backend)}
 
 
 # The command (configs/commands/render.yaml) --------------------------------------------------------------------
 def run(o, entry) -> dict:
     return render_walk(robot_name=o.robot, terrain_name=o.terrain, controller=o.controller, seconds=o.seconds,
                        seed=o.seed, envs=o.envs, out=o.out, width=o.width, height=o.height, every=o.every,
-                       still=o.still or None)
+                       still=o.still or None, physics=o.physics)
 
 
 def report(res: dict) -> str:

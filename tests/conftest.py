@@ -38,7 +38,7 @@ _PEAKS = []
 # The slowest tests on 2 cores with a cold cache (compile-bound), slowest first: handed out first, they
 # keep the two workers busy to the end instead of leaving one of them a long test at the finish. A test of
 # SHARED_FIXTURES takes its group along with it.
-SLOW_FIRST = ("test_every_backend_honours_the_same_draws", "test_cpg_gradient_matches_central_differences",
+SLOW_FIRST = ("test_validated_mjx_meets_the_reference_on_a_paired_matrix", "test_every_backend_honours_the_same_draws", "test_cpg_gradient_matches_central_differences",
               "test_families_walkable_at_zero_and_harder_with_difficulty",
               "test_tuning_is_deterministic_and_resumes", "test_two_processes_give_the_per_env_numbers_of_one",
               "test_brax_ppo_trains", "test_gradient_matches_central_differences_per_group",

@@ -3,7 +3,6 @@ with MuJoCo C's single-thread speed on the same model as a reference ratio."""
 
 from __future__ import annotations
 
-import dataclasses
 import os
 import platform
 import time
@@ -19,7 +18,8 @@ from hexjax.control.cpg import CPGController
 from hexjax.control.gait import GaitController
 from hexjax.control.perceive_gait import PerceivingAvoidGait
 from hexjax.control.tactile import TactileGaitController
-from hexjax.sim.config import PhysicsConfig, RolloutConfig, physics_for
+from hexjax.sim.config import PhysicsConfig, RolloutConfig
+from hexjax.sim.physics import get_physics
 from hexjax.sim.mjcf import compile_mjcf
 from hexjax.sim.model import batch_model, sim_model
 from hexjax.sim.rollout import BACKENDS, make_mesh, rollout
@@ -64,9 +64,12 @@ def mujoco_c_steps_per_s(robot: str, terrain: str, physics: PhysicsConfig, secon
 
 def bench(robot: str = "luneckas2020", batches: Sequence[int] = (16, 64, 256), sim_seconds: float = 2.0,
           terrains: Sequence[str] = ("flat", "high-large"), gait: str = "tripod",
-          physics: PhysicsConfig = PhysicsConfig(), repeats: int = 2, progress: bool = True,
+          physics: Sequence = ("validated",), repeats: int = 2, progress: bool = True,
           controller: str = "gait", backend: str = "mjx", nthread: int = 0, devices: int = 1) -> Dict:
-    """Times `rollout` at each batch size on each terrain. env-steps = envs x physics steps.
+    """Times `rollout` at each batch size on each terrain and physics preset. env-steps = envs x physics steps.
+
+    physics: physics presets (names, .yaml paths or `PhysicsPreset`s), each timed on every row; every row names
+    its preset.
 
     backend: a comma list of rollout backends ('mjx', 'warp', 'c'; see `hexjax.sim.rollout.rollout`), each
     timed on the same terrains, batches and controllers; nthread: MuJoCo C threads (0: all cores).
@@ -105,20 +108,24 @@ def bench(robot: str = "luneckas2020", batches: Sequence[int] = (16, 64, 256), s
     mesh = None
     if devices > 1:
         mesh = make_mesh(jax.devices()[:devices])
+    presets = {p.name: p for p in (get_physics(x) for x in physics)}
+    if len(presets) != len(physics):
+        raise ValueError(f"physics={list(physics)!r}: each preset once")
     spec = get_robot(robot)
     ctrls = {}
     for n in names:
         ctrls[n] = CONTROLLERS[n](spec, gait=gait)
     cfg = RolloutConfig()
-    n_phys = int(round((sim_seconds + cfg.settle_time) / physics.timestep))
+    steps = {n: int(round((sim_seconds + cfg.settle_time) / p.timestep)) for n, p in presets.items()}
     rows = []
-    jobs = [(t, b, c, be) for be in backends for t in terrains for b in batches for c in ctrls]
-    for tname, b, cname, be in tqdm(jobs, desc="bench", disable=not progress):
+    jobs = [(t, b, c, be, pn) for pn in presets for be in backends for t in terrains for b in batches for c in ctrls]
+    for tname, b, cname, be, pname in tqdm(jobs, desc="bench", disable=not progress):
         ctrl = ctrls[cname]
         params = ctrl.default_params()
         tspec = get_terrain(tname)
         terr = sample(tspec, jax.random.PRNGKey(0), b)
-        phys = physics_for(tspec.kind, physics)
+        phys = presets[pname].config(tspec)
+        n_phys = steps[pname]
         kw = dict(physics=phys, config=cfg, backend=be, nthread=nthread or None, mesh=mesh)
         out, st = rollout(spec, terr, ctrl, params, sim_seconds, jax.random.PRNGKey(1), stats=True, **kw)
         first, compile_s, compiled = st.wall_s, st.compile_s, st.compiled
@@ -128,7 +135,8 @@ def bench(robot: str = "luneckas2020", batches: Sequence[int] = (16, 64, 256), s
             out = rollout(spec, terr, ctrl, params, sim_seconds, jax.random.PRNGKey(2 + r), **kw)
             jax.block_until_ready(out.end_pose)
             best = min(best, time.perf_counter() - t0)
-        rows.append(dict(terrain=tname, batch=b, controller=cname, backend=be, pairs=sim_model(spec, phys).n_pairs,
+        rows.append(dict(terrain=tname, batch=b, controller=cname, backend=be, physics=pname,
+                         iterations=phys.iterations, cone=phys.cone, pairs=sim_model(spec, phys).n_pairs,
                          compile_s=round(compile_s, 2), compiled=compiled, first_call_s=round(first, 2),
                          repeats=repeats,
                          run_s=round(best, 4), env_steps_per_s=round(b * n_phys / best, 1),
@@ -136,17 +144,18 @@ def bench(robot: str = "luneckas2020", batches: Sequence[int] = (16, 64, 256), s
                          tactile_steps=int(np.asarray(out.tactile_steps).sum()),
                          mean_travel_x=round(float(np.mean(np.asarray(out.travel)[:, 0])), 4)))
         if progress:
-            tqdm.write(f"{be} {tname} B={b} {cname}: compile {compile_s:.1f} s, {rows[-1]['env_steps_per_s']:.0f} env-steps/s, "
+            tqdm.write(f"{pname} {be} {tname} B={b} {cname}: compile {compile_s:.1f} s, {rows[-1]['env_steps_per_s']:.0f} env-steps/s, "
                        f"{rows[-1]['fell']} fell, {rows[-1]['nan']} nan, tactile events {rows[-1]['tactile_steps']}")
-    ref = {t: mujoco_c_steps_per_s(robot, t, physics_for(get_terrain(t).kind, physics)) for t in terrains}
+    ref = {(t, n): mujoco_c_steps_per_s(robot, t, p.config(get_terrain(t))) for t in terrains
+           for n, p in presets.items()}
     for r in rows:
-        r["mujoco_c_1thread_steps_per_s"] = round(ref[r["terrain"]], 1)
-        r["ratio_vs_mujoco_c_1thread"] = round(r["env_steps_per_s"] / ref[r["terrain"]], 3)
-    rate = {(r["terrain"], r["batch"], r["controller"], r["backend"]): r["env_steps_per_s"] for r in rows}
+        r["mujoco_c_1thread_steps_per_s"] = round(ref[r["terrain"], r["physics"]], 1)
+        r["ratio_vs_mujoco_c_1thread"] = round(r["env_steps_per_s"] / ref[r["terrain"], r["physics"]], 3)
+    rate = {(r["terrain"], r["batch"], r["controller"], r["backend"], r["physics"]): r["env_steps_per_s"] for r in rows}
     if "gait" in ctrls:
         for r in rows:
             if r["controller"] != "gait":
-                r["overhead_vs_gait"] = round(rate[(r["terrain"], r["batch"], "gait", r["backend"])]
+                r["overhead_vs_gait"] = round(rate[(r["terrain"], r["batch"], "gait", r["backend"], r["physics"])]
                                               / r["env_steps_per_s"] - 1.0, 3)
     if "perceive" in ctrls:
         rays = ctrls["perceive"].sensor.n_rays
@@ -155,12 +164,12 @@ def bench(robot: str = "luneckas2020", batches: Sequence[int] = (16, 64, 256), s
             if r["controller"] == "perceive":
                 r["rays_per_s_per_env"] = round(rays * scans / r["run_s"], 1)
                 if "avoid" in ctrls:
-                    r["perception_overhead"] = round(rate[(r["terrain"], r["batch"], "avoid", r["backend"])]
+                    r["perception_overhead"] = round(rate[(r["terrain"], r["batch"], "avoid", r["backend"], r["physics"])]
                                                      / r["env_steps_per_s"] - 1.0, 3)
     dev = jax.devices()[0]
     return dict(robot=robot, gait=gait, controller=controller, backends=backend, nthread=nthread or os.cpu_count(),
-                sim_seconds=sim_seconds, physics_steps_per_env=n_phys,
-                physics=dataclasses.asdict(physics), backend=jax.default_backend(),
+                sim_seconds=sim_seconds, physics_steps_per_env=steps,
+                physics=[p.record() for p in presets.values()], backend=jax.default_backend(),
                 device=f"{dev.platform}:{getattr(dev, 'device_kind', '')}", n_devices=len(jax.devices()),
                 devices_used=devices,
                 host=platform.node(), cpu_count=os.cpu_count(), jax=jax.__version__,
@@ -168,13 +177,13 @@ def bench(robot: str = "luneckas2020", batches: Sequence[int] = (16, 64, 256), s
 
 
 def format_bench(res: Dict) -> str:
-    head = (f"{'backend':<7} {'terrain':<11} {'ctrl':<7} {'pairs':>5} {'batch':>7} {'compile s':>9} {'env-steps/s':>12} "
+    head = (f"{'physics':<10} {'backend':<7} {'terrain':<11} {'ctrl':<7} {'pairs':>5} {'batch':>7} {'compile s':>9} {'env-steps/s':>12} "
             f"{'MuJoCo C 1thr':>13} {'ratio':>6} {'vs gait':>8}")
     lines = [f"{res['device']} ({res['backend']}, {res['n_devices']} device(s), {res.get('devices_used', 1)} used), {res['sim_seconds']} s simulated, "
              f"robot {res['robot']}", head]
     for r in res["rows"]:
         extra = f"{100 * r['overhead_vs_gait']:+7.1f}%" if "overhead_vs_gait" in r else ""
-        lines.append(f"{r.get('backend', 'mjx'):<7} {r['terrain']:<11} {r.get('controller', 'gait'):<7} {r['pairs']:5d} {r['batch']:7d} "
+        lines.append(f"{r.get('physics', ''):<10} {r.get('backend', 'mjx'):<7} {r['terrain']:<11} {r.get('controller', 'gait'):<7} {r['pairs']:5d} {r['batch']:7d} "
                      f"{r['compile_s']:9.1f} {r['env_steps_per_s']:12.0f} "
                      f"{r['mujoco_c_1thread_steps_per_s']:13.0f} {r['ratio_vs_mujoco_c_1thread']:6.2f} {extra:>8}")
     for r in res["rows"]:
@@ -202,7 +211,7 @@ def run(o, entry) -> Dict:
                           unroll_substeps=o.unroll_substeps, backwards=o.backward)
     return bench(robot=o.robot, batches=o.batches, sim_seconds=o.seconds, terrains=o.terrains,
                  controller=",".join(o.controller), backend=",".join(o.backend), nthread=o.nthread,
-                 devices=o.devices, repeats=o.repeats)
+                 devices=o.devices, repeats=o.repeats, physics=tuple(o.physics))
 
 
 def report(res: Dict) -> str:

@@ -13,8 +13,9 @@ from tqdm.auto import tqdm
 
 from hexjax.control.gait import GaitController
 from hexjax.experiments.metrics import batch_stats, goal_errors
-from hexjax.sim.config import PhysicsConfig, RolloutConfig
+from hexjax.sim.config import RolloutConfig
 from hexjax.sim.model import sim_model
+from hexjax.sim.physics import PhysicsPreset, get_physics, shared_config
 from hexjax.sim.rollout import BACKENDS, rollout
 from hexjax.world.presets import get_robot, get_terrain
 from hexjax.world.terrain import LUNECKAS2020_CATEGORIES, pad_terrain, sample
@@ -24,11 +25,15 @@ DEFAULT_CATEGORIES = ("flat",) + LUNECKAS2020_CATEGORIES
 
 def evaluate(robot: str = "luneckas2020", gait: str = "tripod", distance: float = 1.0, batch: int = 16,
              seed: int = 0, categories: Sequence[str] = DEFAULT_CATEGORIES, step_height: float = 0.03,
-             physics: PhysicsConfig = PhysicsConfig(), progress: bool = True, mesh=None,
-             backend: str = "mjx") -> Dict:
+             physics: str | PhysicsPreset = "validated", progress: bool = True, mesh=None,
+             backend: str | None = None) -> Dict:
     """Walk `distance` m with the open-loop Luneckas 2020 gait on each category; returns
-    {"config": ..., "categories": {name: batch_stats + env_steps_per_s}}. robot, categories: preset names or
-    YAML paths; backend: the physics engine ('mjx', 'warp', 'c'; see `hexjax.sim.rollout.rollout`)."""
+    {"config": ..., "categories": {name: batch_stats + env_steps_per_s}, "physics": the preset's record}.
+    robot, categories: preset names or YAML paths; physics: a physics preset (name, .yaml path or
+    `PhysicsPreset`); backend: the physics engine ('mjx', 'warp', 'c'; default the preset's; see
+    `hexjax.sim.rollout.rollout`)."""
+    preset = get_physics(physics)
+    backend = backend or preset.backend
     if not (isinstance(distance, (int, float)) and 0 < distance <= 20):
         raise ValueError(f"distance={distance!r}: must be in (0, 20] m")
     if not isinstance(batch, int) or batch < 1:
@@ -42,6 +47,7 @@ def evaluate(robot: str = "luneckas2020", gait: str = "tripod", distance: float 
     n_cycles, duration = ctrl.duration_for(distance, params)
     ctrl = dataclasses.replace(ctrl, n_cycles=n_cycles)
     m = max(s.max_boxes for s in specs.values())
+    physics = shared_config(preset, specs.values())  # one program for every category
     if backend != "c":  # build the MJX model up front so no category's timing includes it
         sim_model(spec, physics, "warp" if backend == "warp" else "jax")
     key = jax.random.PRNGKey(seed)
@@ -61,7 +67,7 @@ def evaluate(robot: str = "luneckas2020", gait: str = "tripod", distance: float 
                            step_length_m=float(params.step_length), swing_time_s=float(params.swing_time),
                            slots_per_leg=physics.slots_per_leg, torso_slots=physics.torso_slots,
                            backend=jax.default_backend(), devices=len(jax.devices()), physics_backend=backend),
-            "categories": results}
+            "categories": results, "physics": preset.record(backend)}
 
 
 def format_table(result: Dict) -> str:
@@ -78,12 +84,13 @@ def format_table(result: Dict) -> str:
 # The command (configs/commands/evaluate.yaml) ---------------------------------------------------------------
 def run(o, entry) -> Dict:
     return evaluate(robot=o.robot, gait=o.gait, distance=o.distance, batch=o.batch, seed=o.seed,
-                    categories=tuple(o.categories), step_height=o.step_height / 100.0, backend=o.backend)
+                    categories=tuple(o.categories), step_height=o.step_height / 100.0, physics=o.physics,
+                    backend=o.backend or None)
 
 
 def report(res: Dict) -> str:
     c = res["config"]
     compile_s = sum(s["compile_s"] for s in res["categories"].values())
-    return (f"\n{c['robot']} {c['gait']} gait, {c['distance_m']:g} m ({c['gait_cycles']} cycles, "
+    return (f"\n{res['physics']['name']} physics ({c['physics_backend']}); {c['robot']} {c['gait']} gait, {c['distance_m']:g} m ({c['gait_cycles']} cycles, "
             f"{c['duration_s']:.1f} s), {c['batch']} envs per category, seed {c['seed']}, no tactile method\n"
             + format_table(res) + f"\ncompile {compile_s:.1f} s (one program for every category)")

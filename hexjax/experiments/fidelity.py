@@ -21,11 +21,14 @@ beside the JSON (`<json>.partial.json`); a rerun of the same command resumes aft
 
 from __future__ import annotations
 
+import concurrent.futures
+import contextlib
 import dataclasses
 import hashlib
 import json
 import math
 import os
+import threading
 from typing import Dict, List, Optional
 
 import numpy as np
@@ -83,11 +86,18 @@ def paired(a, b):
     return m, (m - half, m + half)
 
 
-def _digest(o, presets) -> str:
-    keys = ("batch", "distance", "seed", "controllers", "only", "robot", "refine", "backend")
-    blob = {k: getattr(o, k, None) for k in keys}
-    blob["presets"] = presets
-    return hashlib.sha256(json.dumps(blob, sort_keys=True, default=str).encode()).hexdigest()[:16]
+def _digest(o) -> str:
+    """What the kept rollouts depend on besides the physics (each run is kept under its own preset's key)."""
+    keys = ("batch", "distance", "seed", "controllers", "only", "robot")
+    return hashlib.sha256(json.dumps({k: getattr(o, k, None) for k in keys}, sort_keys=True,
+                                     default=str).encode()).hexdigest()[:16]
+
+
+def _physics_key(record: Dict) -> str:
+    """A kept run's physics: every setting and the engine, not the preset's name (a copy under another name
+    reuses it)."""
+    blob = {k: v for k, v in record.items() if k != "name"}
+    return hashlib.sha256(json.dumps(blob, sort_keys=True, default=str).encode()).hexdigest()[:12]
 
 
 def _presets(o):
@@ -160,7 +170,10 @@ def _walk(o, preset, backend: str, label: str, ctrl, rb, duration: float, idx: L
     from hexjax.sim.rollout import rollout
     from hexjax.world.randomization import concat_perturbations
     from hexjax.world.terrain import pad_terrain
-    inputs = {j: _cell_inputs(o, cells[j], j, rb, label, ctrl, key) for j in idx}
+    # drawn on the host: each cell's terrain family is its own small program, which a GPU compiles far more slowly
+    # than the host does (52 cells cost minutes there before the first rollout)
+    with jax.default_device(jax.devices("cpu")[0]):
+        inputs = {j: _cell_inputs(o, cells[j], j, rb, label, ctrl, key) for j in idx}
     # grouped by the terrain's own slot count, whatever the preset does with it, so that both presets split the
     # cells alike and every env gets the same heading draw under both
     groups: Dict = {}
@@ -175,9 +188,12 @@ def _walk(o, preset, backend: str, label: str, ctrl, rb, duration: float, idx: L
         pert = concat_perturbations([inputs[j][2] for j in js])
         batched = inputs[js[0]][3] is not None
         params = cat(*[inputs[j][3] for j in js]) if batched else ctrl.default_params()
-        s = rollout(rb, terr, ctrl, params, duration, jax.random.fold_in(key, 10_000 + js[0]), physics=physics,
-                    config=RolloutConfig(), perturbation=pert, params_batched=batched, backend=backend,
-                    mesh=mesh_for(len(js) * o.batch) if backend == "mjx" else None)
+        s, st = rollout(rb, terr, ctrl, params, duration, jax.random.fold_in(key, 10_000 + js[0]), physics=physics,
+                        config=RolloutConfig(), perturbation=pert, params_batched=batched, backend=backend,
+                        mesh=mesh_for(len(js) * o.batch) if backend == "mjx" else None, stats=True)
+        if getattr(o, "progress", True):
+            print(f"  {label} on {preset.name} ({backend}): {len(js)} cells x {o.batch} envs in {st.wall_s:.0f} s "
+                  f"(compile {st.compile_s:.0f} s, {st.env_steps_per_s:,.0f} env-steps/s)", flush=True)
         e = goal_errors(s, o.distance)
         cols = dict(success=e.success, advance=e.advance, dy=e.dy, dalpha=e.dalpha, fell=s.fell, nan=s.nan,
                     slip=s.foot_slip, path=s.path_length)
@@ -199,16 +215,18 @@ def _replay(o, preset, backend: str, spec: Dict, key, robot) -> Dict[str, List]:
     from hexjax.world.randomization import randomization_from_dict, sample_perturbation
     from hexjax.world.terrain import sample
     ctrl = GaitController(robot)
+    cpu = jax.devices("cpu")[0]
     times = [float(t) for t in spec["times"]]
     steps = [int(round(t / ctrl.dt)) - 1 for t in times]
     out = {}
     for j, (t_name, f) in enumerate((t, f) for t in spec["terrains"] for f in spec["frictions"]):
         cell = Cell(t_name, friction=None if float(f) == 1.0 else float(f))
         tspec = get_terrain(t_name, length=o.distance + 0.3)
-        k_t, k_p, k_r = jax.random.split(jax.random.fold_in(key, 20_000 + j), 3)
-        terr = sample(tspec, k_t, o.batch)
-        rnd = {} if cell.friction is None else {"friction": cell.friction}
-        pert = sample_perturbation(randomization_from_dict(rnd), k_p, o.batch)
+        with jax.default_device(cpu):  # drawn on the host (see `_walk`)
+            k_t, k_p, k_r = jax.random.split(jax.random.fold_in(key, 20_000 + j), 3)
+            terr = sample(tspec, k_t, o.batch)
+            rnd = {} if cell.friction is None else {"friction": cell.friction}
+            pert = sample_perturbation(randomization_from_dict(rnd), k_p, o.batch)
         s = rollout(robot, terr, ctrl, ctrl.default_params(), max(times), k_r, physics=preset.config(tspec),
                     config=RolloutConfig(record=True), perturbation=pert, backend=backend)
         out[cell.name] = np.asarray(s.trace)[:, steps].tolist()
@@ -291,7 +309,8 @@ def run(o, entry) -> Dict:
         return make_mesh(jax.devices()[:n_dev]) if n_dev > 1 else None
 
     presets = {"a": a.record(backend_a), "b": b.record()}
-    digest = _digest(o, presets)
+    pkey = {side: _physics_key(r) for side, r in presets.items()}
+    digest = _digest(o)
     partial = (o.json + ".partial.json") if o.json else ""
     done: Dict = {}
     if partial and os.path.exists(partial):
@@ -301,33 +320,53 @@ def run(o, entry) -> Dict:
             done = saved["runs"]
     key = jax.random.PRNGKey(o.seed)
     rep = spec.get("replay") if not o.only else None
-    jobs = [(label, side) for label, *_ in runs for side in ("b", "a")]
-    if rep:
-        jobs += [("replay", "b"), ("replay", "a")]
-    bar = tqdm(jobs, desc="fidelity", unit="rollout", disable=not getattr(o, "progress", True))
+    labels = [r[0] for r in runs] + (["replay"] if rep else [])
+    sides = {"a": (a, backend_a), "b": (b, b.backend)}
+    todo = {side: [lb for lb in labels if f"{lb}|{pkey[side]}" not in done] for side in sides}
+    bar = tqdm(total=2 * len(labels), initial=2 * len(labels) - sum(map(len, todo.values())), desc="fidelity",
+               unit="rollout", disable=not getattr(o, "progress", True))
+    lock = threading.Lock()
+
+    def work(side):
+        preset, backend = sides[side]
+        # MuJoCo C steps on the host's cores: its controller steps stay on the host too, off the accelerator
+        ctx = jax.default_device(jax.devices("cpu")[0]) if backend == "c" else contextlib.nullcontext()
+        with ctx:
+            for label in todo[side]:
+                if f"{label}|{pkey[side]}" in done:  # the other side ran the same physics
+                    continue
+                if label == "replay":
+                    out = _replay(o, preset, backend, rep, key, robot)
+                else:
+                    _, ctrl, rb, duration, idx = next(r for r in runs if r[0] == label)
+                    out = _walk(o, preset, backend, label, ctrl, rb, duration, idx, cells, key, mesh_for)
+                with lock:
+                    done[f"{label}|{pkey[side]}"] = out
+                    if partial:
+                        with open(partial, "w") as f:
+                            json.dump({"digest": digest, "runs": done}, f)
+                    bar.set_postfix_str(f"{label} on {preset.name} ({backend}) done")
+                    bar.update(1)
+
     try:
-        for label, side in bar:
-            tag = f"{label}|{side}"
-            preset, backend = (a, backend_a) if side == "a" else (b, b.backend)
-            bar.set_postfix_str(f"{label} on {preset.name} ({backend})")
-            if tag in done:
-                continue
-            if label == "replay":
-                done[tag] = _replay(o, preset, backend, rep, key, robot)
-            else:
-                _, ctrl, rb, duration, idx = next(r for r in runs if r[0] == label)
-                done[tag] = _walk(o, preset, backend, label, ctrl, rb, duration, idx, cells, key, mesh_for)
-            if partial:
-                with open(partial, "w") as f:
-                    json.dump({"digest": digest, "runs": done}, f)
+        if sides["a"][1] != sides["b"][1] and "c" in (sides["a"][1], sides["b"][1]):
+            # MuJoCo C on the host's cores beside the other engine, each side in its own thread
+            with concurrent.futures.ThreadPoolExecutor(2) as pool:
+                for f in [pool.submit(work, side) for side in ("b", "a")]:
+                    f.result()
+        else:
+            work("b")
+            work("a")
     except KeyboardInterrupt:
-        kept = f"{len(done)} of {len(jobs)} rollouts kept in {partial}; run the same command to resume" if partial \
+        kept = f"{len(done)} rollouts kept in {partial}; run the same command to resume" if partial \
             else "nothing kept (no --json)"
         raise KeyboardInterrupt(f"hexjax fidelity interrupted: {kept}") from None
-    res_a = {label: done[f"{label}|a"] for label, *_ in runs}
-    res_b = {label: done[f"{label}|b"] for label, *_ in runs}
+    finally:
+        bar.close()
+    res_a = {label: done[f"{label}|{pkey['a']}"] for label in labels}
+    res_b = {label: done[f"{label}|{pkey['b']}"] for label in labels}
     rows = _compare(cells, runs, res_a, res_b)
-    replay = _replay_rows(rep["times"], done["replay|a"], done["replay|b"]) if rep else []
+    replay = _replay_rows(rep["times"], res_a["replay"], res_b["replay"]) if rep else []
     worst = lambda k: max((abs(r[k]) for r in rows), default=math.nan)
     return {"config": dict(batch=o.batch, distance_m=o.distance, seed=o.seed, robot=robot.name,
                            controllers=[r[0] for r in runs], cells=[c.name for c in cells], refine=o.refine,

@@ -110,9 +110,12 @@ def solver_note(kind: str, backend: str, iterations: int):
 
 
 def _digest(o) -> str:
-    keys = ("controllers", "axis", "batch", "terrain", "robot", "distance", "seed", "randomization", "cone",
-            "iterations", "per_env", "backend")
-    return hashlib.sha256(json.dumps({k: getattr(o, k) for k in keys}, sort_keys=True, default=str).encode()).hexdigest()[:16]
+    from hexjax.sim.physics import get_physics
+    keys = ("controllers", "axis", "batch", "terrain", "robot", "distance", "seed", "randomization", "per_env",
+            "backend")
+    blob = {k: getattr(o, k) for k in keys}
+    blob["physics"] = get_physics(o.physics).record(o.backend or None)
+    return hashlib.sha256(json.dumps(blob, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
 def _controllers(names, default_robot):
@@ -199,15 +202,18 @@ def sweep(o) -> Dict:
 
     from hexjax.control.tactile import overcome_height
     from hexjax.experiments.metrics import batch_stats, goal_errors
-    from hexjax.sim.config import PhysicsConfig, RolloutConfig, physics_for
+    from hexjax.sim.config import RolloutConfig
+    from hexjax.sim.physics import get_physics
     from hexjax.sim.rollout import make_mesh, rollout
     from hexjax.tune.space import with_values
     from hexjax.world.presets import get_robot, get_terrain
     from hexjax.world.randomization import sample_perturbation
     from hexjax.world.terrain import leg_scale, pad_terrain, sample
 
-    if o.backend != "mjx" and jax.process_count() > 1:
-        raise ValueError(f"--backend={o.backend}: several processes need --backend mjx")
+    preset = get_physics(o.physics)
+    backend = o.backend or preset.backend
+    if backend != "mjx" and jax.process_count() > 1:
+        raise ValueError(f"--backend={backend}: several processes need --backend mjx")
     robot = get_robot(o.robot)
     ctrls = _controllers(o.controllers, robot)
     base_terrain = get_terrain(o.terrain, length=o.distance + 0.3)
@@ -229,8 +235,7 @@ def sweep(o) -> Dict:
         t.validate()
         t_specs.append(t)
         r_specs.append(r)
-    physics = physics_for(base_terrain.kind, PhysicsConfig(cone=o.cone, iterations=o.iterations,
-                                                           slots_per_leg=base_terrain.slots_per_leg))
+    physics = preset.config(base_terrain)
     physics.validate()
     # each cell's envs sharded over as many devices as divide the batch (several GPUs, or a CPU's cores); with
     # several processes (jax.distributed) over every device of every process
@@ -241,11 +246,11 @@ def sweep(o) -> Dict:
                              f"{jax.process_count()} processes")
     else:
         n_dev = max(d for d in range(1, len(jax.devices()) + 1) if o.batch % d == 0)
-    if o.backend != "mjx":  # warp and c run on one device / the host's threads
+    if backend != "mjx":  # warp and c run on one device / the host's threads
         n_dev = 1
     mesh = make_mesh(jax.devices()[:n_dev]) if n_dev > 1 else None
     lead = jax.process_index() == 0  # writes the partial file; the others only compute their shards
-    note = solver_note(base_terrain.kind, o.backend, o.iterations)
+    note = solver_note(base_terrain.kind, backend, physics.iterations)
     if note and lead:
         print(note, file=sys.stderr)
     n_box = max(s.max_boxes for s in t_specs)
@@ -291,7 +296,7 @@ def sweep(o) -> Dict:
             params = _avoid_params(ctrl, terr, t_specs[i].kind, o.distance)
         summ, st = rollout(rb, terr, ctrl, params, duration, k_r, physics=physics, config=RolloutConfig(),
                            perturbation=pert, stats=True, mesh=mesh, params_batched=kind == "avoid",
-                           backend=o.backend)
+                           backend=backend)
         errs = goal_errors(summ, o.distance)
         stats = batch_stats(summ, errs)
         k = int(np.asarray(errs.success).sum())
@@ -320,12 +325,11 @@ def sweep(o) -> Dict:
             label = cname if not g else f"{cname} | {axes[1][0]}={g[0]:g}"
             env[label] = envelope([r[first] for r in sel], [(r["successes"], r["n"]) for r in sel], first)
     return {"config": dict(controllers=list(ctrls), axes={n: v for n, v in axes}, batch=o.batch, robot=robot.name,
-                           terrain=o.terrain, distance_m=o.distance, seed=o.seed, cone=o.cone,
-                           iterations=o.iterations, randomization=base_rand.to_dict(),
+                           terrain=o.terrain, distance_m=o.distance, seed=o.seed, randomization=base_rand.to_dict(),
                            robots={c: plan[c][1].name for c in ctrls},
                            durations_s={c: plan[c][2] for c in ctrls}, backend=jax.default_backend(),
-                           devices=n_dev, processes=jax.process_count(), physics_backend=o.backend),
-            "cells": rows, "envelope": env, "compile_s": compile_s}
+                           devices=n_dev, processes=jax.process_count(), physics_backend=backend),
+            "cells": rows, "envelope": env, "compile_s": compile_s, "physics": preset.record(backend)}
 
 
 def _host_devices():
@@ -373,7 +377,7 @@ def report(res: Dict) -> str:
             + f" {'succ %':>7} {'95 % CI':>13} {'goal err cm':>11} {'fall %':>7} {'energy J':>9} {'NaN':>4}")
     lines = [f"\nrobustness sweep: {c['batch']} envs per cell on {c.get('devices', 1)} device(s), "
              f"{c['distance_m']:g} m on {c['terrain']}, "
-             f"{c['cone']} cone, {c['iterations']} Newton iterations, seed {c['seed']}", head, "-" * len(head)]
+             f"{res['physics']['name']} physics ({c['physics_backend']}), seed {c['seed']}", head, "-" * len(head)]
     for r in res["cells"]:
         lo, hi = r["success_ci95"]
         lines.append(f"{r['controller']:<10} " + " ".join(f"{r[n]:16g}" for n in names)

@@ -53,8 +53,22 @@ def run(entry: Entry, o: types.SimpleNamespace) -> Dict[str, Any]:
     """Check, run, report; write `o.json` and plot to `o.png` where the entry has those options. Returns the
     result and prints what was written."""
     check_options(entry, o)
+    preset = None
+    names = {opt.name for opt in entry.options}
+    if "physics" in names and "against" not in names:  # `hexjax fidelity` names its two presets itself
+        from hexjax.sim.physics import get_physics
+        names = o.physics if isinstance(o.physics, list) else [o.physics]  # `hexjax bench` times several
+        presets = [get_physics(n) for n in names]  # a bad file or value: one line, before anything runs
+        backend = getattr(o, "backend", "")
+        backend = ",".join(backend) if isinstance(backend, list) else backend  # `hexjax bench --backend mjx,c`
+        for p in presets:
+            print(p.header(backend or None), flush=True)
+        preset = presets if isinstance(o.physics, list) else presets[0]
     mod = importlib.import_module(entry.entry)
     res = mod.run(o, entry)
+    if preset is not None and isinstance(res, dict):  # every result names the physics it ran
+        res.setdefault("physics", [p.record(backend or None) for p in preset] if isinstance(preset, list)
+                       else preset.record(backend or None))
     print(mod.report(res))
     written: List[str] = []
     if getattr(o, "png", "") and hasattr(mod, "plot"):

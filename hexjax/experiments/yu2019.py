@@ -19,7 +19,8 @@ from tqdm.auto import tqdm
 
 from hexjax.control.cpg import MODE_NAMES, TRIPOD_GROUP, CPGController
 from hexjax.experiments.registry import experiment
-from hexjax.sim.config import PhysicsConfig, RolloutConfig, physics_for
+from hexjax.sim.config import RolloutConfig
+from hexjax.sim.physics import get_physics, traced_backend
 from hexjax.sim.rollout import rollout
 from hexjax.tune.space import load_values, with_values
 from hexjax.world.presets import get_robot, get_terrain
@@ -118,11 +119,11 @@ def _summarise(ctrl: CPGController, robot, s, terrain, kind: str, stumble_tilt: 
 
 def run_experiment(name: str, batch: int = 32, seed: int = 0, duration: Optional[float] = None,
                    record: bool = True, progress: bool = True, preset: Optional[Mapping] = None,
-                   params: Optional[Mapping] = None, iterations: Optional[int] = None) -> Dict:
+                   params: Optional[Mapping] = None, physics="validated") -> Dict:
     """Runs every (terrain, variant) of experiment `name` (its preset: configs/experiments/<name>.yaml, or
     `preset`) on `batch` randomised terrains (the same terrains for every variant). `params` ({field: value},
-    e.g. a tuned result) replaces the paper's numbers in every variant; `iterations` sets MJX's Newton
-    iterations (default `PhysicsConfig`'s). Returns {"config",
+    e.g. a tuned result) replaces the paper's numbers in every variant; `physics`: the physics preset (name,
+    .yaml path or `PhysicsPreset`; on MJX: a step's success reads the foot traces). Returns {"config",
     "results": {terrain: {variant: metrics}}, "_records"}; `_records` holds numpy traces of one env per row
     for plotting and is not JSON."""
     ex = dict(preset if preset is not None else experiment(name).preset)
@@ -132,8 +133,8 @@ def run_experiment(name: str, batch: int = 32, seed: int = 0, duration: Optional
     if not (math.isfinite(dur) and dur > 0):
         raise ValueError(f"duration={duration!r}: must be a finite number of seconds > 0")
     robot = get_robot(ex["robot"])
-    base = PhysicsConfig() if iterations is None else PhysicsConfig(iterations=iterations)
-    base.validate()
+    preset = get_physics(physics)
+    backend = traced_backend(preset, "foot traces (a step's success reads them)")
     if params:
         with_values(CPGController(robot).default_params(), params)  # a wrong name or shape fails here
     variants = list(ex["variants"].items())
@@ -141,9 +142,9 @@ def run_experiment(name: str, batch: int = 32, seed: int = 0, duration: Optional
     out = {"config": {"experiment": name, "robot": robot.name, "batch": batch, "seed": seed, "duration_s": dur,
                       "terrains": list(ex["terrains"]), "variants": [v for v, _ in variants],
                       "stumble_tilt_deg": math.degrees(stumble_tilt),
-                      "solver_iterations": base.iterations,
+                      "solver_iterations": preset.iterations,
                       "params": {k: np.asarray(v).tolist() for k, v in (params or {}).items()} or "the paper's"},
-           "results": {}, "_records": {}}
+           "results": {}, "_records": {}, "physics": preset.record(backend)}
     jobs = [(t, v, o or {}) for t in ex["terrains"] for v, o in variants]
     bar = tqdm(jobs, desc=name, disable=not progress)
     for terrain_name, label, overrides in bar:
@@ -155,7 +156,7 @@ def run_experiment(name: str, batch: int = 32, seed: int = 0, duration: Optional
         p = with_values(ctrl.default_params(**{k: float(v) for k, v in overrides.items()}), params or {})
         t0 = time.perf_counter()
         s, st = rollout(robot, terrain, ctrl, p, dur, jax.random.PRNGKey(seed + 1),
-                        physics=physics_for(spec.kind, base),
+                        physics=preset.config(spec), backend=backend,
                         # the step's success needs foot traces
                         config=RolloutConfig(record=record or spec.kind == "step"),
                         stats=True)
@@ -234,7 +235,7 @@ def plot_experiment(res: Dict, path: str) -> None:
 def run(o, entry) -> Dict:
     return run_experiment(entry.name, batch=o.batch, seed=o.seed, duration=o.duration, record=bool(o.png),
                           preset=entry.preset, params=load_values(o.params) if o.params else None,
-                          iterations=o.iterations)
+                          physics=o.physics)
 
 
 def report(res: Dict) -> str:

@@ -38,6 +38,17 @@ def sensor_layout() -> dict:
                 actuator=N_LEGS * per_leg, size=N_LEGS * per_leg + 3 * N_LEGS)
 
 
+def option_xml(physics: PhysicsConfig, gravity=None) -> str:
+    """The `<option>` element of a physics configuration (solver, cone, tolerances, timestep, integrator);
+    `gravity` (3 numbers) where it is not MuJoCo's default (the analytic tests tilt it)."""
+    g = f' gravity="{_f(*gravity)}"' if gravity is not None else ""
+    integ = {"euler": "Euler", "implicitfast": "implicitfast"}[physics.integrator]
+    return (f'<option timestep="{physics.timestep:.6g}" iterations="{physics.iterations}" '
+            f'ls_iterations="{physics.ls_iterations}" tolerance="{physics.tolerance:.6g}" '
+            f'ls_tolerance="{physics.ls_tolerance:.6g}" impratio="{physics.impratio:.6g}" solver="Newton" '
+            f'cone="{physics.cone}" integrator="{integ}"{g}><flag eulerdamp="disable"/></option>')
+
+
 def build_mjcf(spec: RobotSpec, physics: PhysicsConfig, *, contact_sensors: bool = False,
                terrain_boxes: int = 0) -> str:
     """MJCF text of the robot on a ground plane with `physics.slots_per_leg` slots per leg.
@@ -132,11 +143,7 @@ def build_mjcf(spec: RobotSpec, physics: PhysicsConfig, *, contact_sensors: bool
     body = "\n".join(legs)
     return f"""<mujoco model="hexjax_{spec.name}">
   <compiler angle="radian" autolimits="true"/>
-  <option timestep="{physics.timestep:.6g}" iterations="{physics.iterations}" ls_iterations="{physics.ls_iterations}"
-          tolerance="{physics.tolerance:.6g}" ls_tolerance="{physics.ls_tolerance:.6g}" impratio="{physics.impratio:.6g}"
-          solver="Newton" cone="{physics.cone}" integrator="{ {"euler": "Euler", "implicitfast": "implicitfast"}[physics.integrator]}">
-    <flag eulerdamp="disable"/>
-  </option>
+  {option_xml(physics)}
   <default>
     <geom contype="0" conaffinity="0" friction="{spec.friction:.6g} 0.005 0.0001" condim="3"/>
     <joint damping="{spec.joint_damping:.6g}" armature="{spec.armature:.6g}"/>

@@ -88,6 +88,23 @@ class PhysicsPreset:
                 f"impratio {self.impratio:g}, timestep {1e3 * self.timestep:g} ms; {slots})")
 
 
+def shared_config(preset: PhysicsPreset, specs) -> PhysicsConfig:
+    """One `PhysicsConfig` for a batch that mixes terrains (`TerrainSpec`s): the most slots any of them takes
+    where the preset leaves the count to the terrain; flat ground's none where every terrain is flat."""
+    specs = list(specs)
+    most = max((s for s in specs if s.kind != "flat"), key=lambda s: s.slots_per_leg, default=None)
+    return preset.config(most, kind="mixed") if most is not None else preset.config(kind="flat")
+
+
+def traced_backend(preset: PhysicsPreset, why: str) -> str:
+    """The preset's engine where it is MJX's (JAX or Warp), for a run that reads what only MJX records (`why`);
+    one ValueError line for a MuJoCo C preset."""
+    if preset.backend == "c":
+        raise ValueError(f"physics={preset.name!r} runs MuJoCo C, which keeps no {why}: give a preset on mjx or warp "
+                         "(validated, fast, or a .yaml of one's own)")
+    return preset.backend
+
+
 def get_physics(name=None, **overrides) -> PhysicsPreset:
     """The `PhysicsPreset` of preset `name` (configs/physics/<name>.yaml; default `validated`) or of a YAML file
     path, with keys replaced by `overrides` (checked as the file's own). A `PhysicsPreset` is checked and given

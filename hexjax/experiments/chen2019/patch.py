@@ -16,7 +16,8 @@ from hexjax.control.gait import GaitController, GaitParams
 from hexjax.control.perceive_support import PerceivingSupportPlan
 from hexjax.control.support_gait import SupportPlanController
 from hexjax.perceive.grid import dem_grid
-from hexjax.sim.config import PhysicsConfig, RolloutConfig
+from hexjax.sim.config import RolloutConfig
+from hexjax.sim.physics import get_physics, traced_backend
 from hexjax.sim.rollout import rollout
 from hexjax.world.dem import dem_for, dem_layout
 from hexjax.world.presets import get_robot, get_terrain
@@ -33,11 +34,10 @@ def patch_spec(width: float = 0.8, taper: float = 0.1):
     return get_terrain("waves", width=width, taper=taper)
 
 
-CHEN_PHYSICS = PhysicsConfig(slots_per_leg=4, iterations=4)
-"""Physics of the rugged patch: 4 terrain slots per leg (a 12 mm foot on 20 mm columns touches up to 4) and
-4 Newton iterations. With the default 2, the 4 kg chen2019 robot's stance feet sometimes sank 3 cm into the
-columns and popped out (1 of 8 planned walks capsized that way); with 4 none did (8 of 8 crossed, max tilt
-14 deg)."""
+CHEN_SLOTS = 4
+"""Terrain slots per leg on the rugged patch: a 12 mm foot on 20 mm columns touches up to 4 (the waves preset's
+own count). Under the `fast` preset's 2 Newton iterations the 4 kg chen2019 robot's stance feet sometimes sank
+3 cm into the columns and popped out (1 of 8 planned walks capsized that way); with 4 none did."""
 
 
 def _summarise(parts, far: float) -> Dict:
@@ -56,10 +56,11 @@ def _summarise(parts, far: float) -> Dict:
 
 def run_chen2019(n: int = 16, seed: int = 0, robot: str = "chen2019", duration: float = 16.0, stride: float = 0.05,
                  phase_time: float = 0.5, fixed_step_heights=(0.08, 0.13), chunk: int = 0, mesh=None,
-                 sensor=None, perceive_every: int = 5, progress: bool = True) -> Dict:
+                 sensor=None, perceive_every: int = 5, progress: bool = True, physics="validated") -> Dict:
     """Planned (SupportPlanController on the true DEM) vs fixed (the Luneckas 2020 tripod at the same stride
     and period and the robot's standard posture, at each swing height of `fixed_step_heights`) over n
-    randomised wave patches (`patch_spec`), physics `CHEN_PHYSICS`. With a `sensor`
+    randomised wave patches (`patch_spec`), under the physics preset `physics` (on MJX, `CHEN_SLOTS` slots per
+    leg where the preset leaves the count to the terrain). With a `sensor`
     (`hexjax.perceive.sensors.RangeSensor`) also "perceived": the same planner on the DEM it maps with that
     sensor, a scan every `perceive_every` control steps (`PerceivingSupportPlan`). Per controller: capsizes
     (the rollout's fall test: torso tilt > 60 deg or centre < 3 cm above the ground), crossings (torso past
@@ -70,6 +71,10 @@ def run_chen2019(n: int = 16, seed: int = 0, robot: str = "chen2019", duration: 
         raise ValueError(f"batch n={n!r}: must be an integer >= 1")
     if not (isinstance(duration, (int, float)) and duration > 0):
         raise ValueError(f"duration={duration!r}: must be > 0 s")
+    preset = get_physics(physics)
+    backend = traced_backend(preset, "traces of the walks (plots, the support planner's records)")
+    phys = preset.config(kind="waves") if preset.slots_per_leg is not None else \
+        dataclasses.replace(preset.config(kind="waves"), slots_per_leg=CHEN_SLOTS)
     rb = get_robot(robot)
     spec = patch_spec()
     k_t, k_r = jax.random.split(jax.random.PRNGKey(seed))
@@ -97,8 +102,9 @@ def run_chen2019(n: int = 16, seed: int = 0, robot: str = "chen2019", duration: 
                       "fixed_step_heights": list(fixed_step_heights),
                       "patch": {"length": spec.length, "width": spec.width, "start_x": spec.start_x,
                                 "taper": spec.taper, "peak_range": list(spec.height_range), "cell": spec.cell},
-                      "torso_height": float(pp.height[0]), "physics_iterations": CHEN_PHYSICS.iterations,
-                      "slots_per_leg": CHEN_PHYSICS.slots_per_leg, "device": str(jax.devices()[0].platform)},
+                      "torso_height": float(pp.height[0]), "physics_iterations": phys.iterations,
+                      "slots_per_leg": phys.slots_per_leg, "device": str(jax.devices()[0].platform)},
+           "physics": preset.record(backend),
            "_records": {}, "_terrain": terrain}
     if sensor is not None:
         res["config"].update(sensor=dataclasses.asdict(sensor), perceive_every=perceive_every)
@@ -110,7 +116,8 @@ def run_chen2019(n: int = 16, seed: int = 0, robot: str = "chen2019", duration: 
             sl = lambda x: x[i:i + chunk]
             prm = jax.tree_util.tree_map(sl, params) if batched else params
             s, st = rollout(rb, jax.tree_util.tree_map(sl, terrain), ctrl, prm, duration, jax.random.fold_in(k_r, i),
-                            physics=CHEN_PHYSICS, config=cfg, params_batched=batched, mesh=mesh, stats=True)
+                            physics=phys, config=cfg, params_batched=batched, mesh=mesh, stats=True,
+                            backend=backend)
             comp += st.compile_s
             parts.append(jax.device_get(s))
         row = _summarise(parts, far)
@@ -197,7 +204,8 @@ def plot_chen2019(res: Dict, png: str, env: int = 0) -> None:
 def run(o, entry) -> Dict:
     p = entry.preset
     return run_chen2019(n=o.batch, seed=o.seed, robot=o.robot, duration=o.duration, stride=p["stride"],
-                        phase_time=p["phase_time"], fixed_step_heights=tuple(p["fixed_step_heights"]), chunk=o.chunk)
+                        phase_time=p["phase_time"], fixed_step_heights=tuple(p["fixed_step_heights"]), chunk=o.chunk,
+                        physics=o.physics)
 
 
 def report(res: Dict) -> str:

@@ -61,13 +61,13 @@ def sequences_from_runs(ctrl, params, terrain, summary, groups, gait: str, dista
 
 
 def make_dataset(n: int = 16, seed: int = 1, gaits: Sequence[str] = ("wave", "tripod"), distance: float = 2.0,
-                 progress: bool = True) -> Dict[str, np.ndarray]:
+                 progress: bool = True, physics="validated") -> Dict[str, np.ndarray]:
     """Simulate the luneckas2020 matrix (every category x with/without, plus flat) for each gait on `n`
     terrains per cell and return the concatenated sequences (see `sequences_from_runs`)."""
     width = robot_width(get_robot("luneckas2020"))
     parts = []
     for g in gaits:
-        ctrl, params, terrain, s, groups, _ = simulate_gait(g, n, seed, distance, progress=progress)
+        ctrl, params, terrain, s, groups, _ = simulate_gait(g, n, seed, distance, progress=progress, physics=physics)
         parts.append(sequences_from_runs(ctrl, params, terrain, s, groups, g, distance, width))
     return concat_datasets(parts)
 
@@ -112,9 +112,11 @@ def split_by_terrain(data, held_out_frac: float = 0.2, seed: int = 0):
 
 # The experiment (configs/experiments/luneckas2020-dataset.yaml) ---------------------------------------------
 def run(o, entry) -> Dict:
-    data = make_dataset(n=o.n, seed=o.seed, gaits=o.gaits, distance=o.distance)
+    from hexjax.sim.physics import get_physics
+    data = make_dataset(n=o.n, seed=o.seed, gaits=o.gaits, distance=o.distance, physics=o.physics)
     save_dataset(o.out, data, {"source": "hexjax experiment luneckas2020-dataset", "n": o.n, "seed": o.seed,
-                               "gaits": list(o.gaits), "distance_m": o.distance})
+                               "gaits": list(o.gaits), "distance_m": o.distance,
+                               "physics": get_physics(o.physics).record()})
     return {"sequences": int(len(data["Y"])), "steps": int(data["X"].shape[1]), "out": o.out}
 
 

@@ -55,7 +55,8 @@ def _cell(dx, dy, da, fell, stuck, nan, d):
 
 
 def run_luneckas2020(n: int = 16, seed: int = 0, gaits: Sequence[str] = GAITS,
-                     distances: Sequence[float] = DISTANCES, progress: bool = True, keep_sequences: bool = False) -> Dict:
+                     distances: Sequence[float] = DISTANCES, progress: bool = True, keep_sequences: bool = False,
+                     physics="validated") -> Dict:
     """Runs the whole matrix; returns a JSON-ready dict (see module doc) and, with keep_sequences,
     `_sequences`: the runs as an error-predictor dataset (`predictor`)."""
     if not isinstance(n, int) or n < 1:
@@ -78,7 +79,7 @@ def run_luneckas2020(n: int = 16, seed: int = 0, gaits: Sequence[str] = GAITS,
     for gait in gaits:
         fits = {}  # dL per method, fitted at the shortest distance (`_model_vs_sim`)
         t0 = time.perf_counter()
-        ctrl, params, terrain, s, groups, st = simulate_gait(gait, n, seed, d_max, progress=progress)
+        ctrl, params, terrain, s, groups, st = simulate_gait(gait, n, seed, d_max, progress=progress, physics=physics)
         wall = time.perf_counter() - t0
         trace = np.asarray(s.trace)  # (B, T, 4): x, y, z, yaw
         n_steps = trace.shape[1]
@@ -311,7 +312,8 @@ def plot_luneckas(res: Dict, stem: str) -> list:
 
 # The experiment (configs/experiments/luneckas2020.yaml) -----------------------------------------------------
 def run(o, entry) -> Dict:
-    res = run_luneckas2020(n=o.n, seed=o.seed, gaits=o.gaits, distances=o.distances, keep_sequences=bool(o.dataset))
+    res = run_luneckas2020(n=o.n, seed=o.seed, gaits=o.gaits, distances=o.distances, keep_sequences=bool(o.dataset),
+                           physics=o.physics)
     if o.dataset:
         save_dataset(o.dataset, concat_datasets(res.pop("_sequences")),
                      {"source": "experiment luneckas2020", "n": o.n, "seed": o.seed})

@@ -16,6 +16,7 @@ from tqdm.auto import tqdm
 from hexjax.control.tactile import TactileGaitController, overcome_height
 from hexjax.experiments.metrics import pose_errors
 from hexjax.sim.config import RolloutConfig
+from hexjax.sim.physics import get_physics, shared_config
 from hexjax.sim.rollout import rollout
 from hexjax.sim.step import progress_to
 from hexjax.world.presets import get_robot, get_terrain
@@ -53,11 +54,14 @@ def robot_width(robot) -> float:
 
 def simulate_gait(gait: str, n: int, seed: int = 0, distance: float = 2.0,
                   categories: Sequence[str] = LUNECKAS2020_CATEGORIES, methods: Sequence[str] = METHODS,
-                  calibration: bool = True, progress: bool = True, robot_name: str = "luneckas2020"):
-    """One compiled, batched rollout of `gait` over every (category, method) x n terrains (+ n flat).
+                  calibration: bool = True, progress: bool = True, robot_name: str = "luneckas2020",
+                  physics="validated"):
+    """One compiled, batched rollout of `gait` over every (category, method) x n terrains (+ n flat), under the
+    physics preset `physics` (name, .yaml path or `PhysicsPreset`).
 
     Returns (ctrl, params, terrain, summary, groups, RolloutStats) with groups a list of (category, method,
     slice)."""
+    preset = get_physics(physics)
     robot = get_robot(robot_name)
     specs = {c: get_terrain(c, length=distance + 0.3) for c in categories}
     m = max([s.max_boxes for s in specs.values()] + [1])
@@ -90,7 +94,8 @@ def simulate_gait(gait: str, n: int, seed: int = 0, distance: float = 2.0,
 
     with progress_to(sink):
         s, st = rollout(robot, terrain, ctrl, params, dur, jax.random.fold_in(base, 1000), params_batched=True,
-                        config=cfg, stats=True)
+                        config=cfg, stats=True, physics=shared_config(preset, specs.values()),
+                        backend=preset.backend)
     bar.update(n_total - bar.n)
     bar.close()
     return ctrl, params, terrain, s, groups, st

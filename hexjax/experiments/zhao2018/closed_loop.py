@@ -23,6 +23,7 @@ from hexjax.plan import avoid
 from hexjax.plan.avoid import AvoidConfig
 from hexjax.plan.fields import Fields, small_fields, straight_line_blocked
 from hexjax.sim.config import RolloutConfig
+from hexjax.sim.physics import get_physics, traced_backend
 from hexjax.sim.rollout import rollout
 from hexjax.world.presets import get_robot
 from hexjax.world.robot import RobotSpec, hip_positions
@@ -112,14 +113,17 @@ def seeded_fields(seed: int, n: int, ap):
 def run_closed_loop(n: int = 32, seed: int = 0, robot: str = "luneckas2020", n_T: int = 2,
                     duration: Optional[float] = None, chunk: int = 0, mesh=None, fields: Optional[Fields] = None,
                     blind: bool = False, controller: Optional[AvoidGaitController] = None,
-                    progress: bool = True) -> Dict:
+                    progress: bool = True, physics="validated") -> Dict:
     """Closed-loop avoidance over n random fields (`small_fields`, or the given `fields`): the kinematic
     planner (`avoid.plan`, same params) and the MJX hexapod with `AvoidGaitController`, side by side.
     blind: the MJX robot's planner is not told of the obstacles (they are still in the terrain), the
     ablation that shows what the planner prevents. controller: another `AvoidGaitController` (with the same
     n_T), e.g. one that plans round perceived obstacles (`hexjax.control.perceive_gait`). Returns a JSON-ready
     dict; the `_`-keys hold arrays for plots. A field counts as a closed-loop success when the robot stopped
-    within goal_tol of the target, touched no obstacle, did not fall and stayed finite."""
+    within goal_tol of the target, touched no obstacle, did not fall and stayed finite. physics: a physics preset
+    on MJX (name, .yaml path or `PhysicsPreset`; the touch test reads MJX's foot traces)."""
+    preset = get_physics(physics)
+    backend = traced_backend(preset, "foot traces (the touch test)")
     rb = get_robot(robot)
     ctrl = controller or AvoidGaitController(rb, avoid=AvoidConfig(n_T=n_T, max_cycles=40))
     g, ap = field_setup(ctrl)
@@ -151,7 +155,8 @@ def run_closed_loop(n: int = 32, seed: int = 0, robot: str = "luneckas2020", n_T
     for i in tqdm(range(0, n, chunk), desc="closed loop", unit="chunk", disable=n <= chunk or not progress):
         sl = lambda x: x[i:i + chunk]
         s, st = rollout(rb, jax.tree_util.tree_map(sl, terrain), ctrl, jax.tree_util.tree_map(sl, params), duration,
-                        jax.random.fold_in(k_roll, i), config=cfg, params_batched=True, mesh=mesh, stats=True)
+                        jax.random.fold_in(k_roll, i), config=cfg, params_batched=True, mesh=mesh, stats=True,
+                        physics=preset.config(kind="obstacles"), backend=backend)
         compile_s += st.compile_s
         touched = touches(rb, s.trace, s.foot_trace, jax.tree_util.tree_map(sl, terrain))
         outs.append((jax.device_get(s), touched))
@@ -251,7 +256,7 @@ def plot_closed_loop(res: Dict, png: str, k: int = 6) -> None:
 # The experiment (configs/experiments/zhao2018-mjx.yaml) ----------------------------------------------------
 def run(o, entry) -> Dict:
     return run_closed_loop(n=o.batch, seed=o.seed, robot=o.robot, n_T=entry.preset["n_T"], duration=o.duration,
-                           blind=o.blind, chunk=o.chunk)
+                           blind=o.blind, chunk=o.chunk, physics=o.physics)
 
 
 def report(res: Dict) -> str:

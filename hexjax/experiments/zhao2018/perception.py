@@ -53,8 +53,9 @@ def _mode_numbers(res: Dict, dt: float, goal_tol: float) -> Dict:
 
 def run_perception(n: int = 16, seed: int = 0, robot: str = "luneckas2020", sensor: str = "kinect_v1",
                    n_T: int = 2, cell: float = 0.04, every: int = 5, threshold: float = 0.05,
-                   duration=None, chunk: int = 0, modes=MODES, **sensor_overrides) -> Dict:
-    """Every mode of `modes` over the same n fields (same seed, same obstacle boxes, same rollout keys)."""
+                   duration=None, chunk: int = 0, modes=MODES, physics="validated", **sensor_overrides) -> Dict:
+    """Every mode of `modes` over the same n fields (same seed, same obstacle boxes, same rollout keys), under the
+    physics preset `physics` (on MJX)."""
     if not (isinstance(n, int) and n >= 1):
         raise ValueError(f"batch={n!r}: must be an integer >= 1")
     rb = get_robot(robot)
@@ -69,7 +70,7 @@ def run_perception(n: int = 16, seed: int = 0, robot: str = "luneckas2020", sens
     for mode in modes:
         res = run_closed_loop(n=n, seed=seed, robot=robot, n_T=n_T, duration=duration, chunk=chunk, fields=fields,
                               blind=mode == "blind", controller=ctrl if mode == "perceived" else None,
-                              progress=False)
+                              progress=False, physics=physics)
         raw[mode] = res
         out[mode] = _mode_numbers(res, base.dt, float(ap.goal_tol))
         duration = res["config"]["duration_s"]  # every mode walks as long as the first
@@ -145,7 +146,7 @@ def run_sweeps(sweeps, n: int, seed: int, robot: str, sensor: str, **kw) -> Dict
 def run(o, entry) -> Dict:
     pre = entry.preset
     kw = dict(n_T=pre["n_T"], cell=o.cell, every=o.every, threshold=pre["obstacle_threshold"], duration=o.duration,
-              chunk=o.chunk)
+              chunk=o.chunk, physics=o.physics)
     if o.sweep:
         return run_sweeps(o.sweep, n=o.batch, seed=o.seed, robot=o.robot, sensor=o.sensor, **kw)
     return run_perception(n=o.batch, seed=o.seed, robot=o.robot, sensor=o.sensor, **kw)

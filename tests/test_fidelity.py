@@ -1,0 +1,59 @@
+"""`hexjax fidelity` on a small paired matrix: the validated preset (MJX) against the reference (MuJoCo C,
+converged), and the matrix's bookkeeping."""
+
+import types
+
+import numpy as np
+import pytest
+
+from hexjax.experiments import fidelity
+
+
+def _options(**kw):
+    o = dict(physics="validated", against="reference", backend="", refine=False, batch=64, controllers=["gait"],
+             only=[], robot="luneckas2020", distance=0.25, seed=0, json="", png="", progress=False)
+    o.update(kw)
+    return types.SimpleNamespace(**o)
+
+
+def test_validated_mjx_meets_the_reference_on_a_paired_matrix():
+    """64 envs per cell, the open-loop gait 0.25 m on flat ground and on low-small obstacles at friction 0.2 and
+    0.6 (the frictions where 2 Newton iterations read 12 % against converged MuJoCo's 43 %), both engines on the
+    same terrains and heading draws. The tolerance is the contract widened by each cell's own paired 95 % interval
+    (`Cell row["within_ci"]`): |d success| <= 5 points, |d advance| <= 1.5 cm, |d heading| <= 1.5 deg must each
+    meet the interval of the paired differences (at 64 envs, independent chaotic walks give a success interval of
+    about +-12 points; the advance and heading ones are tighter)."""
+    entry = types.SimpleNamespace(preset={"friction_terrains": ["flat", "low-small"], "frictions": [0.2, 0.6],
+                                          "controllers": {"gait": "all"}})
+    res = fidelity.run(_options(), entry)
+    assert res["physics"]["name"] == "validated" and res["physics"]["backend"] == "mjx"
+    assert res["against"]["name"] == "reference" and res["against"]["backend"] == "c"
+    rows = {r["cell"]: r for r in res["cells"]}
+    assert sorted(rows) == ["flat mu=0.2", "flat mu=0.6", "low-small mu=0.2", "low-small mu=0.6"]
+    for name, r in rows.items():
+        assert r["n"] == 64 and r["nan"] == [0, 0], name
+        assert r["within_ci"], (name, r["d_success_pts"], r["d_success_ci"], r["d_advance_cm"], r["d_heading_deg"])
+    # on flat ground nothing is chaotic: the two engines walk the same walk
+    for f in ("flat mu=0.2", "flat mu=0.6"):
+        assert abs(rows[f]["d_advance_cm"]) < 0.1 and abs(rows[f]["d_heading_deg"]) < 0.1, rows[f]
+    assert "fidelity: validated (mjx) against reference (c)" in fidelity.report(res)
+
+
+def test_matrix_lists_each_cell_once_and_paired_intervals():
+    spec = {"terrains": ["flat", "low-small"], "families": ["low-small"], "difficulties": [0.0],
+            "friction_terrains": ["low-small"], "frictions": [0.2, 1.0], "payload_terrains": ["flat"], "payloads": [0.6]}
+    names = [c.name for c in fidelity.matrix(spec)]
+    # friction 1.0 is the robot's own: the same cell as the plain category, listed once
+    assert names == ["flat", "low-small", "low-small d=0", "low-small mu=0.2", "flat +0.6 kg"]
+    m, (lo, hi) = fidelity.paired([1, 1, 0, 1], [1, 0, 0, 1])
+    assert m == pytest.approx(0.25) and lo < 0.25 < hi
+    m, (lo, hi) = fidelity.paired(np.ones(8), np.ones(8))
+    assert m == lo == hi == 0.0
+
+
+def test_bad_fidelity_options_fail_in_one_line():
+    entry = types.SimpleNamespace(preset={"terrains": ["flat"]})
+    with pytest.raises(ValueError, match="--only nowhere: no cell of the matrix matches"):
+        fidelity.run(_options(only=["nowhere"]), entry)
+    with pytest.raises(ValueError, match="physics preset 'refrence' unknown"):
+        fidelity.run(_options(against="refrence"), entry)
