@@ -3,10 +3,10 @@ yu2019-ditch: ditch18, ditch40, ditch80), hard mode, the reflexes variant only, 
 or with tuned ones (a `hexjax tune` log.json: its picked iterate).
 
     python scripts/judge_cpg.py --json docs/results/paper.json [--params out/tune/.../log.json]
-        [--batch 16] [--iterations 4]
+        [--batch 16] [--physics validated]
 
 The experiments' terrain seeds (seed 0) are not among the tuning's training, held-out or validation draws.
-With --params the same is `hexjax experiment yu2019-step --params F --iterations 4` (all variants)."""
+With --params the same is `hexjax experiment yu2019-step --params F` (all variants)."""
 
 import argparse
 import json
@@ -20,7 +20,7 @@ from hexjax.tune.space import load_values
 ap = argparse.ArgumentParser()
 ap.add_argument("--params", default=None, help="tuned params (log.json or a mapping); default: the paper's")
 ap.add_argument("--batch", type=int, default=16)
-ap.add_argument("--iterations", type=int, default=4, help="MJX Newton iterations (the tuning configs train with 4)")
+ap.add_argument("--physics", default="validated", help="physics preset or .yaml path (docs/physics.md)")
 ap.add_argument("--json", required=True)
 a = ap.parse_args()
 
@@ -31,7 +31,7 @@ for name in ("yu2019-step", "yu2019-ditch"):
     preset["variants"] = {"reflexes": {}}
     t = time.time()
     res = run_experiment(name, batch=a.batch, seed=0, record=False, progress=False, preset=preset, params=params,
-                         iterations=a.iterations)
+                         physics=a.physics)
     res.pop("_records")
     print(format_experiment(res), f"({time.time() - t:.0f} s)", flush=True)
     out[name] = res

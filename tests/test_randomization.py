@@ -172,11 +172,11 @@ def test_sweep_axes_envelope_and_interval():
     e = envelope([1.0, 0.3, 0.65], [(50, 50), (10, 50), (47, 50)], "friction")
     assert e["level"] == 0.65
     assert envelope([0.3], [(10, 50)], "friction")["level"] is None
-    # the stones under MJX's unconverged solve get a note, converged or other engines do not (docs/robustness.md)
+    # MJX's unconverged solve (the fast preset) gets a note, converged or MuJoCo C does not (docs/physics.md)
     from hexjax.experiments.robustness import solver_note
-    assert "--iterations 4" in solver_note("stones", "mjx", 2)
-    assert solver_note("stones", "mjx", 4) is None and solver_note("stones", "c", 2) is None
-    assert solver_note("stairs", "mjx", 2) is None
+    assert "--physics validated" in solver_note("stones", "mjx", 2) and "stepping stones" in solver_note("stones", "mjx", 2)
+    assert "below friction 1.0" in solver_note("stairs", "warp", 2)
+    assert solver_note("stones", "mjx", 8) is None and solver_note("stones", "c", 2) is None
 
 
 def test_robustness_command_refuses_bad_input_before_any_rollout(capsys, tmp_path):

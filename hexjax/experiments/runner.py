@@ -57,8 +57,8 @@ def run(entry: Entry, o: types.SimpleNamespace) -> Dict[str, Any]:
     names = {opt.name for opt in entry.options}
     if "physics" in names and "against" not in names:  # `hexjax fidelity` names its two presets itself
         from hexjax.sim.physics import get_physics
-        names = o.physics if isinstance(o.physics, list) else [o.physics]  # `hexjax bench` times several
-        presets = [get_physics(n) for n in names]  # a bad file or value: one line, before anything runs
+        given = o.physics if isinstance(o.physics, list) else [o.physics]  # `hexjax bench` times several
+        presets = [get_physics(n) for n in given]  # a bad file or value: one line, before anything runs
         backend = getattr(o, "backend", "")
         backend = ",".join(backend) if isinstance(backend, list) else backend  # `hexjax bench --backend mjx,c`
         for p in presets:

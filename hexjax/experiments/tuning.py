@@ -56,7 +56,7 @@ def run(o, entry) -> Dict:
     print(f"tune {o.config} ({o.method}): {cfg.steps} steps of {cfg.train_batch} terrains ({cfg.distance:g} m "
           f"walks on {', '.join(cfg.terrains)}"
           f"{'' if o.method == 'es' else f'; estimator {cfg.estimator}'}), held-out evaluation on "
-          f"{cfg.held_out_batch} terrains every {cfg.eval_every} steps"
+          f"{cfg.held_out_batch} terrains every {cfg.eval_every} steps on the {cfg.eval_physics} physics"
           f"{'' if limit is None else f', at most {o.minutes:g} min a method'}; a long run (the shipped configs "
           f"take about 15 min a method on 2 CPU cores); checkpoints in {out}/, rerun to resume", flush=True)
     t0 = time.perf_counter()
@@ -72,7 +72,9 @@ def run(o, entry) -> Dict:
         wall = last.get("train_s", last["wall_s"])  # the gradient run's own time, evaluations left out
         runs.append(tune_es(cfg, os.path.join(out, "es_wall"), rollouts=10 ** 9, resume=not o.restart, time_limit=wall))
         runs[-1]["method"] += ", same wall time"
-    res = {"config": o.config, "out": out, "total_wall_s": time.perf_counter() - t0, "runs": [_row(r) for r in runs]}
+    from hexjax.sim.physics import get_physics
+    res = {"config": o.config, "out": out, "total_wall_s": time.perf_counter() - t0, "runs": [_row(r) for r in runs],
+           "physics": get_physics(cfg.eval_physics).record()}
     if len(runs) > 1:
         compare_plot(res["runs"], os.path.join(out, "compare.png"))
     return res

@@ -86,7 +86,12 @@ def train_ppo(env: HexapodGoalEnv, num_timesteps: int = 60_000, num_envs: int = 
 
 # The command (configs/commands/ppo.yaml) ------------------------------------------------------------------------
 def run(o, entry) -> Dict:
-    env = HexapodGoalEnv(robot=o.robot, terrain=o.terrain, goal_distance=o.goal)
+    from hexjax.sim.physics import get_physics, traced_backend
+    from hexjax.world.presets import get_terrain
+    preset = get_physics(o.physics)
+    traced_backend(preset, "Brax env state (the env steps MJX itself)")
+    env = HexapodGoalEnv(robot=o.robot, terrain=o.terrain, goal_distance=o.goal,
+                         physics=preset.config(get_terrain(o.terrain)))
     t0 = time.perf_counter()
     history, _, _ = train_ppo(env, num_timesteps=o.timesteps, num_envs=o.envs, episode_length=o.episode_length,
                               num_evals=o.evals, seed=o.seed,

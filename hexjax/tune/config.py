@@ -47,6 +47,9 @@ class TuneConfig:
     # MJX Newton iterations of both the training and the evaluation physics (None: PhysicsConfig's 2). The
     # CPG on `yu2019` needs 4 for gradients that agree with finite differences (docs/tuning.md)
     solver_iterations: Optional[int] = None
+    # the physics preset the held-out and validation evaluations run (docs/physics.md): the figures a tuning
+    # reports are judged on it, whatever physics the training rollouts take (an MJX preset: mjx or warp)
+    eval_physics: str = "validated"
     # how the gradient goes through MJX's constraint solve (`RolloutConfig.solver_grad`): 'unrolled'
     # differentiates every Newton iteration, 'implicit' one linear solve at the solution (docs/tuning.md)
     solver_grad: str = "unrolled"
@@ -125,6 +128,10 @@ class TuneConfig:
         it = self.solver_iterations
         if it is not None and not (isinstance(it, int) and not isinstance(it, bool) and 1 <= it <= 32):
             raise ValueError(f"tune.solver_iterations={it!r}: must be None or an integer in [1, 32]")
+        from hexjax.sim.physics import get_physics
+        if get_physics(self.eval_physics).backend == "c":
+            raise ValueError(f"tune.eval_physics={self.eval_physics!r}: the evaluation is a kept MJX program; give a "
+                             "preset on mjx (validated, fast or a .yaml of one's own)")
         if self.solver_grad not in GRAD_SOLVERS:
             raise ValueError(f"tune.solver_grad={self.solver_grad!r}: use one of {GRAD_SOLVERS}")
         if not isinstance(self.unroll_substeps, bool):

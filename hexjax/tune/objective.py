@@ -156,19 +156,27 @@ class Problem:
                                 params_batched=params_batched)
 
     def eval_rollout(self):
-        """(model, fn) of the hard evaluation rollout, compiled once per machine (a kept program)."""
-        return rollout_function(self.robot, self.eval_ctrl, self.duration, physics=self.physics(), kept=True)
+        """(model, fn) of the hard evaluation rollout on `eval_physics()`, compiled once per machine (a kept
+        program)."""
+        return rollout_function(self.robot, self.eval_ctrl, self.duration, physics=self.eval_physics(), kept=True)
 
     def static(self, role: str, digest: str) -> tuple:
         """What a tuner's compiled function is made from, to key its kept program (`hexjax.sim.compiled`): the
         config's digest, and the robot, controllers, physics and start params resolved from its preset names
         (a preset file edited since changes the key)."""
-        return (role, digest, self.robot, self.train_ctrl, self.eval_ctrl, self.physics(),
+        return (role, digest, self.robot, self.train_ctrl, self.eval_ctrl, self.physics(), self.eval_physics(),
                 arrays_digest(self.params0, self.eval_params0), self.duration)
 
+    def eval_physics(self) -> PhysicsConfig:
+        """The held-out and validation evaluations' physics: the `eval_physics` preset (default `validated`) on
+        the training terrains' kinds and slot counts, so what a tuning reports is converged physics."""
+        from hexjax.sim.physics import get_physics, shared_config
+        return shared_config(get_physics(self.cfg.eval_physics), self.specs)
+
     def physics(self) -> PhysicsConfig:
-        """The terrain's physics, with `solver_iterations` Newton iterations where the config sets them;
-        training and evaluation share it, so the gradient is of the physics the result is judged on."""
+        """The training rollouts' physics (and CMA-ES's hard objective's): the terrain's, with `solver_iterations`
+        Newton iterations where the config sets them (MJX's pyramidal cone, which the implicit gradient needs).
+        The reported figures are judged on `eval_physics()`."""
         base = PhysicsConfig()
         if self.cfg.solver_iterations is not None:
             base = dataclasses.replace(base, iterations=self.cfg.solver_iterations)
