@@ -86,11 +86,13 @@ def paired(a, b):
     return m, (m - half, m + half)
 
 
-def _digest(o) -> str:
-    """What the kept rollouts depend on besides the physics (each run is kept under its own preset's key)."""
+def _digest(o, spec: Dict) -> str:
+    """What the kept rollouts depend on besides the physics (each run is kept under its own preset's key): the
+    options and the matrix itself (a run is kept by its cells' positions in it)."""
     keys = ("batch", "distance", "seed", "controllers", "only", "robot")
-    return hashlib.sha256(json.dumps({k: getattr(o, k, None) for k in keys}, sort_keys=True,
-                                     default=str).encode()).hexdigest()[:16]
+    blob = {k: getattr(o, k, None) for k in keys}
+    blob["matrix"] = spec
+    return hashlib.sha256(json.dumps(blob, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
 def _physics_key(record: Dict) -> str:
@@ -310,7 +312,7 @@ def run(o, entry) -> Dict:
 
     presets = {"a": a.record(backend_a), "b": b.record()}
     pkey = {side: _physics_key(r) for side, r in presets.items()}
-    digest = _digest(o)
+    digest = _digest(o, spec)
     partial = (o.json + ".partial.json") if o.json else ""
     done: Dict = {}
     if partial and os.path.exists(partial):
