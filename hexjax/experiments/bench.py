@@ -196,7 +196,7 @@ def format_bench(res: Dict) -> str:
 
 
 # The command (configs/commands/bench.yaml) ---------------------------------------------------------------------
-FORWARD_ONLY = ("robot", "seconds", "terrains", "controller", "backend", "nthread", "devices")
+FORWARD_ONLY = ("robot", "seconds", "terrains", "controller", "backend", "nthread", "devices", "physics")
 GRAD_ONLY = ("tune", "solver_grad", "backward", "unroll_substeps")
 
 
