@@ -38,7 +38,8 @@ from hexjax.sim.config import PhysicsConfig, RolloutConfig, SensorConfig
 from hexjax.sim.mjcf import PARKED_Z, build_mjcf, compile_mjcf, sensor_layout
 from hexjax.sim.model import actuator_forces, obs_from_sensordata
 from hexjax.sim.perturb import MIN_FRICTION
-from hexjax.sim.step import Summary, accumulate, end_pose, init_acc, settle_steps, slip, substeps
+from hexjax.sim.slip import slip
+from hexjax.sim.step import Summary, accumulate, end_pose, init_acc, settle_steps, substeps
 from hexjax.world.robot import RobotSpec
 
 _FULL = mujoco.mjtState.mjSTATE_FULLPHYSICS
@@ -295,7 +296,7 @@ def _controller_fns(controller, sensors: SensorConfig, p_axis, perturbed: bool =
 @functools.lru_cache(maxsize=16)
 def _accumulator(config: RolloutConfig, ctrl_dt: float, n_settle: int, robot: RobotSpec):
     """`hexjax.sim.step.accumulate` over a chunk of envs (the MJX rollout's own summary arithmetic), foot slip
-    included (`hexjax.sim.step.slip`, from the feet in contact at the step's start)."""
+    included (`hexjax.sim.slip`, from the feet in contact at the step's start)."""
     def one(acc, i, q_old, q_new, finite, energy, tactile, ground_z, contact):
         return accumulate(acc, config, i, n_settle, ctrl_dt, q_old, q_new, finite, energy, tactile, ground_z,
                           slip(robot, q_old, q_new, contact))
