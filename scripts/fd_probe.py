@@ -8,6 +8,8 @@ the path, `--face X`), with MJX's Newton iterations traced as a scan. About 2-3 
   python scripts/fd_probe.py --robot yu2019 --ctrl gait                 # open-loop Luneckas 2020 gait
   python scripts/fd_probe.py --ctrl cpg-blind --iters 2                  # CPG without feedback, 2 iterations
   python scripts/fd_probe.py --ctrl cpg --iters 4 --omega 5 --tphase 5 --tforce 3   # the test's setting
+  python scripts/fd_probe.py --ctrl gait --physics validated            # on a physics preset (docs/physics.md)
+  python scripts/fd_probe.py --ctrl gait --physics validated --cone pyramidal --solver-grad implicit
 
 docs/tuning.md lists what these calls measured.
 """
@@ -21,6 +23,7 @@ import numpy as np
 from hexjax.control.cpg import CPGController
 from hexjax.control.gait import GaitController
 from hexjax.sim.config import RolloutConfig, physics_for
+from hexjax.sim.physics import get_physics
 from hexjax.sim.rollout import rollout_function
 from hexjax.tune.gradcheck import check, check_batch, tactile_check_setting, travel_objective
 from hexjax.tune.space import Bound, ParamSpace, make_space
@@ -29,7 +32,11 @@ from hexjax.world.presets import get_robot, get_terrain
 ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
 ap.add_argument("--robot", default="yu2019", help="robot preset")
 ap.add_argument("--ctrl", default="cpg", choices=["cpg", "cpg-blind", "tactile", "gait"])
-ap.add_argument("--iters", type=int, default=2, help="MJX Newton iterations")
+ap.add_argument("--iters", type=int, default=0, help="MJX Newton iterations (0: the physics preset's)")
+ap.add_argument("--physics", default="fast", help="physics preset name or .yaml path (an MJX one)")
+ap.add_argument("--cone", default="", choices=["", "pyramidal", "elliptic"], help="override the preset's cone")
+ap.add_argument("--solver-grad", default="unrolled", choices=["unrolled", "implicit"],
+                help="through the Newton iterations, or implicitly at the solution (pyramidal cone only)")
 ap.add_argument("--window", type=float, default=0.4, help="rollout seconds after settling")
 ap.add_argument("--settle", type=float, default=0.1)
 ap.add_argument("--eps", default="1e-3,1e-2", help="central-difference steps on the unconstrained scale")
@@ -71,9 +78,12 @@ if a.face:
     spec = dataclasses.replace(get_terrain("step40"), height_range=(a.faceh, a.faceh), step_side="full",
                                start_x=a.face, length=0.004, step_length_range=(0.3, 0.3))
 terr, keys = check_batch(spec, a.B)
-phys = dataclasses.replace(physics_for(spec.kind), iterations=a.iters)
+overrides = {k: v for k, v in (("iterations", a.iters), ("cone", a.cone)) if v}
+preset = get_physics(a.physics, **overrides)
+print(preset.header())
+phys = physics_for(spec.kind, preset.config(spec))
 model, fn = rollout_function(robot, ctrl, a.window, physics=phys,
-                             config=RolloutConfig(settle_time=a.settle, solver_grad="unrolled"))
+                             config=RolloutConfig(settle_time=a.settle, solver_grad=a.solver_grad))
 
 
 t0 = time.time()

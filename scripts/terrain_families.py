@@ -3,6 +3,8 @@ one rollout per controller: terrains padded to one box count, one compiled progr
 and a PNG (docs/robustness.md, "Terrain families"). Run on a GPU for thousands of envs per cell:
 
     python scripts/terrain_families.py --batch 1024 --json out/families.json --png out/families.png
+
+Physics: the `validated` preset (--physics, docs/physics.md) with 3 box slots per leg, recorded in the JSON.
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ from hexjax.control.gait import GaitController
 from hexjax.control.tactile import TactileGaitController, overcome_height
 from hexjax.experiments.metrics import goal_errors
 from hexjax.experiments.robustness import wilson
-from hexjax.sim.config import PhysicsConfig
+from hexjax.sim.physics import get_physics
 from hexjax.sim.rollout import rollout
 from hexjax.world.presets import get_robot, get_terrain
 from hexjax.world.terrain import pad_terrain, sample
@@ -35,9 +37,14 @@ def main(argv=None):
     ap.add_argument("--controllers", default="gait,tactile")
     ap.add_argument("--distance", type=float, default=0.3)
     ap.add_argument("--start-x", type=float, default=0.1, help="where the features begin (m)")
+    ap.add_argument("--physics", default="validated", help="physics preset name or .yaml path (an MJX one)")
     ap.add_argument("--json", default="")
     ap.add_argument("--png", default="")
     a = ap.parse_args(argv)
+    preset = get_physics(a.physics)
+    if preset.backend == "c":
+        raise SystemExit(f"--physics={a.physics!r}: a MuJoCo C preset; this script runs one MJX rollout")
+    print(preset.header(preset.backend))
     levels = [float(v) for v in a.levels.split(",")]
     fams = a.families.split(",")
     robot = get_robot("luneckas2020")
@@ -45,9 +52,9 @@ def main(argv=None):
     m = max(s.max_boxes for s in specs)
     parts = [pad_terrain(sample(s, jax.random.PRNGKey(i), a.batch), m) for i, s in enumerate(specs)]
     terr = jax.tree_util.tree_map(lambda *x: np.concatenate(x), *parts)
-    physics = PhysicsConfig(slots_per_leg=3)
-    out = {"config": dict(vars(a), robot=robot.name, backend=jax.default_backend(),
-                          physics="pyramidal cone, 2 iterations, 3 slots per leg"), "rows": []}
+    physics = dataclasses.replace(preset.config(kind="mixed"), slots_per_leg=3)
+    out = {"config": dict(vars(a), robot=robot.name, backend=jax.default_backend(), slots_per_leg=3),
+           "physics": preset.record(preset.backend), "rows": []}
     for cname in a.controllers.split(","):
         ctrl = {"gait": GaitController, "tactile": TactileGaitController}[cname](robot, gait="tripod")
         n_cycles, duration = ctrl.duration_for(a.distance)

@@ -56,12 +56,19 @@ def test_mujoco_c_backend_walks_like_mjx(mjx_run):
 def test_mujoco_c_ground_plane_sits_at_the_terrains_ground_z():
     """Terrains with a lowered ground plane (Yu 2019's ditches, stairs-down, slope-down, stones) move the plane
     per env. The same flat walk with the plane at 0 and at -5 cm: the torso keeps the same height above its
-    plane (it was 5 cm higher while MuJoCo ignored the moved plane and the robot walked at z = 0)."""
+    plane (it was 5 cm higher while MuJoCo ignored the moved plane and the robot walked at z = 0). The recorded
+    torso trace (the one trace MuJoCo C keeps) has a pose per control step, ends at the summary's end pose and
+    sits 5 cm lower over the lowered plane."""
     flat = sample(get_terrain("flat"), jax.random.PRNGKey(0), 2)
     terr = flat.replace(ground_z=np.array([0.0, -0.05], np.float32))
-    out = rollout(ROBOT, terr, CTRL, CTRL.default_params(), 1.0, jax.random.PRNGKey(1), backend="c", nthread=1)
+    out = rollout(ROBOT, terr, CTRL, CTRL.default_params(), 1.0, jax.random.PRNGKey(1), backend="c", nthread=1,
+                  config=RolloutConfig(record=True))
     h = np.asarray(out.min_height)
     assert 0.03 < h[0] < 0.15 and abs(h[1] - h[0]) < 0.005, h
+    tr = np.asarray(out.trace)
+    assert tr.shape == (2, round(1.0 / CTRL.dt), 4), tr.shape
+    np.testing.assert_allclose(tr[:, -1, :2], np.asarray(out.end_pose)[:, :2], atol=1e-5)
+    np.testing.assert_allclose(tr[1, :, 2] - tr[0, :, 2], -0.05, atol=0.005)
 
 
 def _warp():
@@ -180,8 +187,6 @@ def test_backend_bad_input_raises_before_tracing():
     with pytest.raises(ValueError, match="forward only"):
         rollout(ROBOT, TERRAIN, CTRL, p, 1.0, jax.random.PRNGKey(0), backend="c",
                 config=RolloutConfig(solver_grad="unrolled"))
-    with pytest.raises(ValueError, match="traces"):
-        rollout(ROBOT, TERRAIN, CTRL, p, 1.0, jax.random.PRNGKey(0), backend="c", config=RolloutConfig(record=True))
     with pytest.raises(ValueError, match="nthread"):
         rollout(ROBOT, TERRAIN, CTRL, p, 1.0, jax.random.PRNGKey(0), backend="c", nthread=-1)
     with pytest.raises(ValueError, match="terrain_boxes"):

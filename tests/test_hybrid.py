@@ -126,8 +126,10 @@ def test_several_terrains_split_each_batch_and_share_one_box_count():
     held, _ = problem.eval_batch()
     assert np.sum(np.isclose(np.asarray(held.ground_z), -0.04)) == 2
     # one preset: the same draws as before several were allowed, and the same checkpoint digest
-    one = load_tune_config("tactile_tripod")
+    one = load_tune_config("tactile_tripod", {"eval_physics": "fast"})
     assert config_digest(one, "grad") == "4d04f9060ae31df0" and config_digest(one, "es8") == "66f3d75331aa77e1"
+    # evaluated on `validated` (the default) it continues no checkpoint evaluated on the training physics
+    assert config_digest(load_tune_config("tactile_tripod"), "grad") != "4d04f9060ae31df0"
     for bad, msg in [({"terrain": []}, "tune.terrain=\\[\\]: must be a terrain preset name"),
                      ({"terrain": ["step40", "step40"]}, "listed twice"),
                      ({"terrain": ["step40", "stepp40"]}, "tune.terrain='stepp40'"),

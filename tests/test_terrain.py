@@ -237,14 +237,19 @@ LEVELS = (0.0, 1 / 3, 2 / 3, 1.0)
 
 
 def test_families_walkable_at_zero_and_harder_with_difficulty():
-    """The open-loop Luneckas 2020 tripod (3 cm swing) walks 0.2 m on each new family, 64 envs per family (16 at
-    each of difficulties 0, 1/3, 2/3, 1), all in one rollout on the `validated` physics: at difficulty 0 every env
-    succeeds (upright, within 10 cm of the goal, finite) and advances as on flat ground. Stairs, slopes and boxes:
-    success never rises from one level to the next by more than one env's share of noise (1/16) and ends at least
-    75 points below difficulty 0. Stepping stones: harder means shorter, not fallen: with the contact solve
-    converged the tripod stalls on 5 cm gaps but stays up (its earlier "drop" of success at 2 Newton iterations
-    was that solver's falls; docs/robustness.md), so at difficulty 1 it advances at least 3 cm less than at 0 and
-    at most 2 of 16 envs fall. The features begin at x = 0.1 m, under the front feet, so a 0.2 m walk crosses them."""
+    """The open-loop Luneckas 2020 tripod (3 cm swing) walks 0.2 m on each new family, 16 envs per family (4 at
+    each of difficulties 0, 1/3, 2/3, 1), all in one rollout on the `validated` physics (96 envs: about 160 s on
+    2 cores). At difficulty 0 every env succeeds (upright, within 10 cm of the goal, finite).
+    - Stairs up and down, slope up, boxes: success never rises from one level to the next by more than one env's
+      share (1/4) and ends at least 75 points below difficulty 0 (they read 0 % at difficulty 1).
+    - Slope down: its steepest ramp, 34 deg, is inside the friction cone (tan 34 deg = 0.67 < mu = 1), so a
+      converged contact solve holds the stance feet and the tripod walks down at every level: every env
+      succeeds, none falls, and the advance at difficulty 1 is within 5 cm of difficulty 0's. (Its earlier 0 %
+      at difficulty 1 was the 2-iteration pyramidal solve letting the feet slide: 42 cm advanced on a 20 cm walk.)
+    - Stepping stones: harder means shorter, not fallen: the tripod stalls on 5 cm gaps but stays up (its earlier
+      falls at 2 Newton iterations were that solver's; docs/robustness.md), so at difficulty 1 it advances at
+      least 3 cm less than at 0 and at most 1 of 4 envs falls.
+    The features begin at x = 0.1 m, under the front feet, so a 0.2 m walk crosses them."""
     import dataclasses
 
     from hexjax.control.gait import GaitController
@@ -253,7 +258,7 @@ def test_families_walkable_at_zero_and_harder_with_difficulty():
     from hexjax.sim.rollout import rollout
     from hexjax.world.terrain import pad_terrain
 
-    n, dist = 16, 0.2
+    n, dist = 4, 0.2
     robot = get_robot("luneckas2020")
     specs = [get_terrain(f, start_x=0.1, length=dist + 0.4).at_difficulty(d) for f in FAMILIES for d in LEVELS]
     m = max(s.max_boxes for s in specs)
@@ -273,7 +278,10 @@ def test_families_walkable_at_zero_and_harder_with_difficulty():
     for f, rates, adv, falls in zip(FAMILIES, ok, advance, fell):
         assert rates[0] == 1.0, (f, rates)
         if f == "stones":
-            assert adv[-1] <= adv[0] - 0.03 and falls[-1] <= 2, (f, adv, falls)
+            assert adv[-1] <= adv[0] - 0.03 and falls[-1] <= 1, (f, adv, falls)
+            continue
+        if f == "slope-down":
+            assert np.all(rates == 1.0) and falls.sum() == 0 and abs(adv[-1] - adv[0]) < 0.05, (f, rates, adv)
             continue
         assert np.all(np.diff(rates) <= 1 / n + 1e-9), (f, rates)
         assert rates[-1] <= rates[0] - 0.75, (f, rates)

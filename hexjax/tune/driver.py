@@ -62,6 +62,11 @@ def config_digest(cfg: TuneConfig, method: str, also_drop: tuple = ()) -> str:
         drop.append("gates")
     if method != "grad" or cfg.backward == "sequential":  # likewise
         drop.append("backward")
+    # checkpoints from before the key evaluated on the training physics, `fast` for the default solver: they
+    # continue under eval_physics 'fast'; under 'validated' the digest differs, so an old held-out history is
+    # never extended with evaluations on other physics
+    if cfg.eval_physics == "fast":
+        drop.append("eval_physics")
     for k in drop:
         d.pop(k)
     for k in also_drop:
@@ -71,8 +76,9 @@ def config_digest(cfg: TuneConfig, method: str, also_drop: tuple = ()) -> str:
 
 # settings that never reach a tuner's compiled program: the run's length and evaluation period, the seed (it draws
 # the terrains and keys, which the program takes as arguments), the held-out and validation batches (the
-# evaluation rollout is a program of its own) and the optimiser and CMA-ES's step size (applied outside it)
-_OUTSIDE_PROGRAM = ("seed", "held_out_batch", "validation_batch", "optimizer", "es_sigma")
+# evaluation rollout, on `eval_physics`, is a program of its own) and the optimiser and CMA-ES's step size
+# (applied outside it)
+_OUTSIDE_PROGRAM = ("seed", "held_out_batch", "validation_batch", "eval_physics", "optimizer", "es_sigma")
 
 
 def program_digest(cfg: TuneConfig, method: str) -> str:
