@@ -4,7 +4,8 @@ and a PNG (docs/robustness.md, "Terrain families"). Run on a GPU for thousands o
 
     python scripts/terrain_families.py --batch 1024 --json out/families.json --png out/families.png
 
-Physics: the `validated` preset (--physics, docs/physics.md) with 3 box slots per leg, recorded in the JSON.
+Physics: the `validated` preset (--physics, docs/physics.md) with the most box slots any family takes, recorded
+in the JSON.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ from hexjax.control.gait import GaitController
 from hexjax.control.tactile import TactileGaitController, overcome_height
 from hexjax.experiments.metrics import goal_errors
 from hexjax.experiments.robustness import wilson
-from hexjax.sim.physics import get_physics
+from hexjax.sim.physics import get_physics, shared_config
 from hexjax.sim.rollout import rollout
 from hexjax.world.presets import get_robot, get_terrain
 from hexjax.world.terrain import pad_terrain, sample
@@ -52,8 +53,9 @@ def main(argv=None):
     m = max(s.max_boxes for s in specs)
     parts = [pad_terrain(sample(s, jax.random.PRNGKey(i), a.batch), m) for i, s in enumerate(specs)]
     terr = jax.tree_util.tree_map(lambda *x: np.concatenate(x), *parts)
-    physics = dataclasses.replace(preset.config(kind="mixed"), slots_per_leg=3)
-    out = {"config": dict(vars(a), robot=robot.name, backend=jax.default_backend(), slots_per_leg=3),
+    physics = shared_config(preset, specs)  # the most slots any family takes (stones: 3 per leg, 8 for the torso)
+    out = {"config": dict(vars(a), robot=robot.name, backend=jax.default_backend(),
+                          slots_per_leg=physics.slots_per_leg, torso_slots=physics.torso_slots),
            "physics": preset.record(preset.backend), "rows": []}
     for cname in a.controllers.split(","):
         ctrl = {"gait": GaitController, "tactile": TactileGaitController}[cname](robot, gait="tripod")

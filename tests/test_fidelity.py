@@ -57,3 +57,12 @@ def test_bad_fidelity_options_fail_in_one_line():
         fidelity.run(_options(only=["nowhere"]), entry)
     with pytest.raises(ValueError, match="physics preset 'refrence' unknown"):
         fidelity.run(_options(against="refrence"), entry)
+
+
+def test_refine_holds_the_reference_against_itself_at_half_the_step_and_twice_the_iterations():
+    a, b, backend = fidelity._presets(_options(refine=True))
+    assert b.name == "reference" and a.name == "reference-refined" and backend == "c"
+    assert a.timestep == b.timestep / 2 and a.iterations == 2 * b.iterations
+    assert a.ls_iterations == 2 * b.ls_iterations and a.tolerance == b.tolerance and a.cone == b.cone
+    a, b, backend = fidelity._presets(_options(backend="warp"))
+    assert (a.name, b.name, backend) == ("validated", "reference", "warp")

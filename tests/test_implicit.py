@@ -340,3 +340,38 @@ def test_matrix_free_rows_match_mjx_with_their_derivative(standing):
         scale = np.max(np.abs(mjx_v))
         assert scale > 1e-2, mjx_v  # a zero on both sides would pass any comparison
         assert np.max(np.abs(ours - mjx_v)) <= tol * scale, (ours, mjx_v)
+
+
+def test_unrolled_gradient_through_the_elliptic_cone_is_finite_and_matches_differences():
+    """The `validated` preset's elliptic cone: the robot standing on flat ground (feet in contact, the parked
+    slots without friction force) stepped 5 times with the unrolled solver. MJX's elliptic line search takes the
+    square root of each contact's tangential force squared, 0 for a contact without friction force; with
+    jnp.sqrt's infinite derivative there the whole gradient was NaN. `reversible_solver` gives that root a
+    finite derivative (`hexjax.sim.model._sqrt`, whose values are jnp.sqrt's bit for bit): the derivative of the
+    torso's x in a sweep of the servo targets is finite and matches central differences."""
+    from hexjax.sim.model import _sqrt
+    x = jnp.array([0.0, 4.0, 2.25])
+    np.testing.assert_array_equal(np.asarray(_sqrt(x)), np.sqrt(np.asarray(x)))
+    np.testing.assert_allclose(np.asarray(jax.vmap(jax.grad(_sqrt))(x)), [0.0, 0.25, 1 / 3], rtol=1e-6)
+
+    phys = dataclasses.replace(physics_for("flat"), iterations=8, ls_iterations=8, cone="elliptic")
+    sm = sim_model(ROBOT, phys)
+    m = sm.mjx_model
+    d = sm.init_data(jnp.zeros(3))
+    ctrl0 = jnp.asarray(sm.ctrl0)
+    d = d.replace(ctrl=ctrl0, qpos=d.qpos.at[7:].set(ctrl0))
+    d = jax.jit(lambda d: jax.lax.fori_loop(0, 100, lambda i, x: mjx.step(m, x), d))(d)
+    sweep = _walk(m, d, 5)  # the servo targets swept by a * w sin(t) for 5 steps
+
+    def torso_x(a):
+        return sweep(a)[0]
+
+    plain = jax.jit(lambda a: torso_x(a))(jnp.float32(0.01))
+    with reversible_solver(8):
+        v, g = jax.jit(jax.value_and_grad(torso_x))(jnp.float32(0.01))
+        f = jax.jit(lambda a: torso_x(a))
+        eps = 1e-3
+        fd = (f(jnp.float32(0.01 + eps)) - f(jnp.float32(0.01 - eps))) / (2 * eps)
+    assert np.isfinite(float(g)), "NaN through the elliptic cone"
+    np.testing.assert_allclose(float(v), float(plain), rtol=1e-3)  # MJX's while loop's value (other rounding)
+    np.testing.assert_allclose(float(g), float(fd), rtol=0.05, atol=1e-7)

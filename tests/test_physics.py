@@ -193,6 +193,18 @@ def test_the_three_presets_load_and_say_what_they_are():
         rec = p.record()
         assert rec["name"] == p.name and rec["backend"] == p.backend and rec["iterations"] == p.iterations
         assert p.name in p.header()
+    # box slots: validated takes each terrain's own counts (stones: 3 per leg, 8 for the torso), fast keeps 2
+    # for the torso; a batch that mixes terrains takes the most of each; flat ground has none
+    from hexjax.sim.physics import shared_config
+    from hexjax.world.presets import get_terrain
+    stones, low = get_terrain("stones"), get_terrain("low-small")
+    assert (val.config(stones).slots_per_leg, val.config(stones).torso_slots) == (3, 8)
+    assert val.config(low).torso_slots == 2 and fast.config(stones).torso_slots == 2
+    mixed = shared_config(val, [low, stones, get_terrain("flat")])
+    assert (mixed.slots_per_leg, mixed.torso_slots) == (3, 8)
+    assert shared_config(val, [get_terrain("flat")]).torso_slots == 0
+    with pytest.raises(ValueError, match=r"terrain.torso_slots=20: must be a whole number in \[0, 16\]"):
+        get_terrain("stones", torso_slots=20)
 
 
 @pytest.mark.parametrize("override, said", [
@@ -201,6 +213,7 @@ def test_the_three_presets_load_and_say_what_they_are():
     (dict(timestep=0.05), "physics.timestep=0.05"), (dict(cone="eliptic"), "physics.cone='eliptic'"),
     (dict(backend="gpu"), "physics.backend='gpu'"), (dict(impratio=-1.0), "physics.impratio=-1.0"),
     (dict(ls_iterations=1.5), "physics.ls_iterations=1.5"), (dict(slots_per_leg=-1), "physics.slots_per_leg=-1"),
+    (dict(torso_slots=17), "physics.torso_slots=17"),
     (dict(iteratons=4), "physics.iteratons: unknown key (did you mean 'iterations'?)"),
 ])
 def test_bad_physics_fails_in_one_line_naming_the_key(override, said):

@@ -254,7 +254,7 @@ def test_families_walkable_at_zero_and_harder_with_difficulty():
 
     from hexjax.control.gait import GaitController
     from hexjax.experiments.metrics import goal_errors
-    from hexjax.sim.physics import get_physics
+    from hexjax.sim.physics import get_physics, shared_config
     from hexjax.sim.rollout import rollout
     from hexjax.world.terrain import pad_terrain
 
@@ -267,7 +267,8 @@ def test_families_walkable_at_zero_and_harder_with_difficulty():
     ctrl = GaitController(robot, gait="tripod")
     n_cycles, duration = ctrl.duration_for(dist)
     ctrl = dataclasses.replace(ctrl, n_cycles=n_cycles)
-    physics = dataclasses.replace(get_physics("validated").config(kind="mixed"), slots_per_leg=3)
+    physics = shared_config(get_physics("validated"), specs)  # 3 slots per leg, 8 for the torso (the stones')
+    assert (physics.slots_per_leg, physics.torso_slots) == (3, 8)
     s = rollout(robot, terr, ctrl, ctrl.default_params(), duration, jax.random.PRNGKey(9), physics=physics)
     e = goal_errors(s, dist)
     shape = (len(FAMILIES), len(LEVELS), n)

@@ -93,6 +93,8 @@ def _digest(o, spec: Dict) -> str:
     keys = ("batch", "distance", "seed", "controllers", "only", "robot")
     blob = {k: getattr(o, k, None) for k in keys}
     blob["matrix"] = spec
+    blob["groups"] = "slots per leg and torso"  # how cells share a rollout (and so its draws): runs kept under
+    # an older grouping are not paired with new ones
     return hashlib.sha256(json.dumps(blob, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
@@ -177,11 +179,11 @@ def _walk(o, preset, backend: str, label: str, ctrl, rb, duration: float, idx: L
     # than the host does (52 cells cost minutes there before the first rollout)
     with jax.default_device(jax.devices("cpu")[0]):
         inputs = {j: _cell_inputs(o, cells[j], j, rb, label, ctrl, key) for j in idx}
-    # grouped by the terrain's own slot count, whatever the preset does with it, so that both presets split the
+    # grouped by the terrain's own slot counts, whatever the preset does with them, so that both presets split the
     # cells alike and every env gets the same heading draw under both
     groups: Dict = {}
     for j in idx:
-        groups.setdefault(inputs[j][0].slots_per_leg, []).append(j)
+        groups.setdefault((inputs[j][0].slots_per_leg, inputs[j][0].torso_slots), []).append(j)
     per_cell = {}
     for js in groups.values():
         physics = preset.config(inputs[js[0]][0], kind="mixed")

@@ -33,9 +33,10 @@ def report(res: Dict) -> str:
     lines.append("ok: yes within the contract; ci: outside it, but the contract band meets the paired 95 % interval "
                  "(more envs decide); NO: outside it and its interval")
     if res["replay"]:
-        lines.append("open-loop replay (the same joint targets): torso divergence A - B, mean (max) over envs")
+        lines.append("open-loop replay (the same joint targets): torso divergence A - B, mean (max) over envs, "
+                     "position in mm, yaw in deg")
         for r in res["replay"]:
-            cols = ", ".join(f"{t:g} s {p:.2f} ({pm:.2f}) cm {y:.2f} deg" for t, p, pm, y in
+            cols = ", ".join(f"{t:g} s {10 * p:.3g} ({10 * pm:.3g}) mm {y:.3g} deg" for t, p, pm, y in
                              zip(r["times_s"], r["position_cm_mean"], r["position_cm_max"], r["yaw_deg_mean"]))
             lines.append(f"  {r['cell']:<20} {cols}")
     return "\n".join(lines)
@@ -67,11 +68,12 @@ def plot(res: Dict, png: str) -> List[str]:
         ax.set_title(title)
         ax.grid(axis="x", alpha=0.3)
     axs[0].set_yticks(y, labels, fontsize=7)
-    axs[0].invert_yaxis()
+    axs[0].set_ylim(len(rows) - 0.5, -0.5)  # the first cell on top, no margin rows
     pa, pb = res["physics"], res["against"]
+    height = fig.get_size_inches()[1]
     fig.suptitle(f"fidelity: {pa['name']} ({pa['backend']}) - {pb['name']} ({pb['backend']}), "
-                 f"{res['config']['batch']} envs per cell; green band: the contract")
-    fig.tight_layout()
+                 f"{res['config']['batch']} envs per cell; green band: the contract", y=1 - 0.15 / height)
+    fig.tight_layout(rect=(0, 0, 1, 1 - 0.45 / height))
     fig.savefig(png, dpi=100)
     plt.close(fig)
     return [png]

@@ -320,18 +320,46 @@ class _JaxWithScanLax:
         return getattr(jax, name)
 
 
+@jax.custom_jvp
+def _sqrt(x):
+    """jnp.sqrt, with derivative 0 where x <= 0 instead of inf. MJX's elliptic-cone line search takes the square
+    root of each contact's tangential force squared, exactly 0 for a contact without friction force (a parked
+    slot, a foot in the air); its derivative there is inf, and reverse mode multiplies it by the 0 cotangent of the
+    branch that discards it: NaN in every gradient. Values are jnp.sqrt's, bit for bit."""
+    return jnp.sqrt(x)
+
+
+@_sqrt.defjvp
+def _sqrt_jvp(primals, tangents):
+    (x,), (dx,) = primals, tangents
+    y = jnp.sqrt(x)
+    pos = x > 0
+    return y, jnp.where(pos, dx / (2 * jnp.where(pos, y, 1.0)), 0.0)
+
+
+class _NumpySafeSqrt:
+    """jax.numpy with `sqrt` replaced by `_sqrt` (for MJX's solver module, as `reversible_solver` traces it)."""
+    sqrt = staticmethod(_sqrt)
+
+    def __getattr__(self, name):
+        return getattr(jnp, name)
+
+
 @contextlib.contextmanager
 def reversible_solver(iterations: int):
     """While open, MJX's constraint solver traces its Newton iterations as a fixed-length scan instead of a
     lax.while_loop, so reverse-mode gradients go through `iterations` > 1 (MJX already runs its line search
-    this way). Same result as the while loop: iterations after convergence are no-ops. Only tracing needs
-    the context; compiled functions keep what they traced. Relies on two private names of MJX's solver
-    module (its `jax` global and `_while_loop_scan`), present in the pinned mujoco-mjx 3.17.0."""
+    this way). Same result as the while loop: iterations after convergence are no-ops. Its `jp.sqrt` gets a
+    derivative that is finite at 0 (`_sqrt`), so that gradients through the elliptic cone are not NaN. Only
+    tracing needs the context; compiled functions keep what they traced. Relies on three private names of
+    MJX's solver module (its `jax` and `jp` globals and `_while_loop_scan`), present in the pinned mujoco-mjx
+    3.17.0."""
     from mujoco.mjx._src import solver
-    if not (hasattr(solver, "_while_loop_scan") and getattr(solver, "jax", None) is not None):
-        raise RuntimeError("reversible_solver: this mujoco-mjx's solver lacks _while_loop_scan; "
-                           "use PhysicsConfig(iterations=1) for gradients instead")
-    with swapped(solver, "jax", _JaxWithScanLax(iterations)):
+    if not (hasattr(solver, "_while_loop_scan") and getattr(solver, "jax", None) is not None
+            and getattr(solver, "jp", None) is jnp):
+        raise RuntimeError("reversible_solver: this mujoco-mjx's solver lacks _while_loop_scan or its jax / jp "
+                           "globals; use PhysicsConfig(iterations=1) for gradients instead")
+    with swapped(solver, "jax", _JaxWithScanLax(iterations)), swapped(solver, "jp", _NumpySafeSqrt()):
         yield
 
 

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import types
 from typing import Any, Dict, Optional
 
 from hexjax.sim.config import PhysicsConfig, physics_for
@@ -34,8 +35,8 @@ SETTINGS = ("timestep", "iterations", "ls_iterations", "tolerance", "ls_toleranc
 @dataclasses.dataclass(frozen=True)
 class PhysicsPreset:
     """One physics preset (see the module docstring). `slots_per_leg`: terrain boxes each leg collides with at a
-    time in MJX (None: the terrain preset's own `slots_per_leg`); `torso_slots`: the torso's. MuJoCo C has a
-    broadphase and takes every box whatever these say."""
+    time in MJX, `torso_slots`: the torso's (None: the terrain preset's own `slots_per_leg`, `torso_slots`).
+    MuJoCo C has a broadphase and takes every box whatever these say."""
 
     name: str = "custom"
     summary: str = ""
@@ -49,7 +50,7 @@ class PhysicsPreset:
     impratio: float = 1.0
     integrator: str = "implicitfast"
     slots_per_leg: Optional[int] = None
-    torso_slots: int = 2
+    torso_slots: Optional[int] = 2
 
     def validate(self) -> None:
         if self.backend not in PHYSICS_BACKENDS:
@@ -57,14 +58,15 @@ class PhysicsPreset:
         self.config().validate()
 
     def config(self, terrain=None, kind: Optional[str] = None) -> PhysicsConfig:
-        """The `PhysicsConfig` of this preset for a terrain (a `TerrainSpec`, for its kind and slot count; or
-        `kind` alone): flat ground gets no slots (`physics_for`), other terrains `slots_per_leg` or, where the
-        preset leaves it None, the terrain's own."""
-        slots = self.slots_per_leg
+        """The `PhysicsConfig` of this preset for a terrain (a `TerrainSpec`, for its kind and slot counts; or
+        `kind` alone): flat ground gets no slots (`physics_for`), other terrains `slots_per_leg` and
+        `torso_slots` or, where the preset leaves them None, the terrain's own (2 and 2 without a terrain)."""
+        slots, torso = self.slots_per_leg, self.torso_slots
         if slots is None:
             slots = int(getattr(terrain, "slots_per_leg", 2))
-        cfg = PhysicsConfig(slots_per_leg=slots, torso_slots=self.torso_slots,
-                            **{k: getattr(self, k) for k in SETTINGS})
+        if torso is None:
+            torso = int(getattr(terrain, "torso_slots", 2))
+        cfg = PhysicsConfig(slots_per_leg=slots, torso_slots=torso, **{k: getattr(self, k) for k in SETTINGS})
         kind = kind or getattr(terrain, "kind", None)
         return physics_for(kind, cfg) if kind else cfg
 
@@ -80,20 +82,24 @@ class PhysicsPreset:
     def header(self, backend: Optional[str] = None) -> str:
         """One line for a command's printed header."""
         be = backend or self.backend
+        own = lambda v: "terrain default" if v is None else v
         slots = "every box a geom" if be == "c" else (
-            f"{'terrain default' if self.slots_per_leg is None else self.slots_per_leg} slots per leg, "
-            f"{self.torso_slots} torso")
+            f"{own(self.slots_per_leg)} slots per leg, {own(self.torso_slots)} torso")
         return (f"physics: {self.name} ({be}, {'float64' if be == 'c' else 'float32'}; {self.iterations} Newton "
                 f"iterations, tolerance {self.tolerance:g}, {self.ls_iterations} line-search steps, {self.cone} cone, "
                 f"impratio {self.impratio:g}, timestep {1e3 * self.timestep:g} ms; {slots})")
 
 
 def shared_config(preset: PhysicsPreset, specs) -> PhysicsConfig:
-    """One `PhysicsConfig` for a batch that mixes terrains (`TerrainSpec`s): the most slots any of them takes
-    where the preset leaves the count to the terrain; flat ground's none where every terrain is flat."""
-    specs = list(specs)
-    most = max((s for s in specs if s.kind != "flat"), key=lambda s: s.slots_per_leg, default=None)
-    return preset.config(most, kind="mixed") if most is not None else preset.config(kind="flat")
+    """One `PhysicsConfig` for a batch that mixes terrains (`TerrainSpec`s): where the preset leaves the slot
+    counts to the terrain, the most any of them takes (per leg and for the torso); flat ground's none where every
+    terrain is flat."""
+    rough = [s for s in specs if s.kind != "flat"]
+    if not rough:
+        return preset.config(kind="flat")
+    most = types.SimpleNamespace(slots_per_leg=max(s.slots_per_leg for s in rough),
+                                 torso_slots=max(s.torso_slots for s in rough))
+    return preset.config(most, kind="mixed")
 
 
 def traced_backend(preset: PhysicsPreset, why: str) -> str:
@@ -105,10 +111,10 @@ def traced_backend(preset: PhysicsPreset, why: str) -> str:
     return preset.backend
 
 
-def get_physics(name=None, **overrides) -> PhysicsPreset:
+def get_physics(name=None, /, **overrides) -> PhysicsPreset:
     """The `PhysicsPreset` of preset `name` (configs/physics/<name>.yaml; default `validated`) or of a YAML file
     path, with keys replaced by `overrides` (checked as the file's own). A `PhysicsPreset` is checked and given
-    back (with `overrides`). A file without `name` takes its file name."""
+    back (with `overrides`, which may rename it: `name=`). A file without `name` takes its file name."""
     if name is None:
         name = DEFAULT_PRESET
     if isinstance(name, PhysicsPreset):

@@ -68,6 +68,7 @@ class TerrainSpec:
     box_count: int = 40
     difficulty: Optional[float] = None  # set by `at_difficulty` (None: the ranges as written)
     slots_per_leg: int = 2  # terrain boxes each leg collides with at a time (see sim.model)
+    torso_slots: int = 2  # and the torso, where a physics preset leaves it to the terrain
 
     def validate(self) -> None:
         """Raise one ValueError line naming the first bad field and its value; also refuses families whose
@@ -122,6 +123,8 @@ class TerrainSpec:
             raise ValueError(f"terrain.difficulty={self.difficulty!r}: must be in [0, 1]")
         if not 1 <= self.slots_per_leg <= 8:
             raise ValueError(f"terrain.slots_per_leg={self.slots_per_leg!r}: must be in [1, 8]")
+        if not (isinstance(self.torso_slots, int) and 0 <= self.torso_slots <= 16):
+            raise ValueError(f"terrain.torso_slots={self.torso_slots!r}: must be a whole number in [0, 16]")
         if self.max_boxes > MAX_BOXES:
             raise ValueError(f"terrain: {self.max_boxes} boxes per terrain (length={self.length!r}, width="
                              f"{self.width!r}, cell / spacing); at most {MAX_BOXES}")
