@@ -102,6 +102,22 @@ def test_sharded_rollout_matches_unsharded():
         np.testing.assert_array_equal(np.asarray(again.end_pose), np.asarray(b.end_pose))
 
 
+def test_per_env_keys_are_used_env_for_env():
+    """A stack of B keys gives env i the i-th key: the split of one key reproduces the one-key rollout, and the
+    same keys reversed give each env the heading draw of its mirror (flat ground: envs differ only by keys)."""
+    spec = luneckas2020()
+    c = GaitController(spec)
+    p = c.default_params()
+    terr = sample(get_terrain("flat"), jax.random.PRNGKey(4), 4)
+    a = rollout(spec, terr, c, p, 1.0, jax.random.PRNGKey(5), physics=FLAT)
+    keys = jax.random.split(jax.random.PRNGKey(5), 4)
+    b = rollout(spec, terr, c, p, 1.0, keys, physics=FLAT)
+    np.testing.assert_array_equal(np.asarray(b.end_pose), np.asarray(a.end_pose))
+    r = rollout(spec, terr, c, p, 1.0, keys[::-1], physics=FLAT)
+    np.testing.assert_array_equal(np.asarray(r.start_pose), np.asarray(a.start_pose)[::-1])
+    assert np.ptp(np.asarray(a.start_pose[:, 2])) > 0  # the draws differ, so the reversal is seen
+
+
 def test_contact_map_matches_mjx_forward():
     sm = SimModel(luneckas2020(), PhysicsConfig(slots_per_leg=1, torso_slots=1))
     d = mjx.make_data(sm.mj_model)
@@ -135,6 +151,8 @@ def test_invalid_rollout_inputs_raise_before_tracing():
         rollout(spec, terr, c, p, 1.0, jnp.zeros(3))
     with pytest.raises(ValueError, match=r"key: got int"):
         rollout(spec, terr, c, p, 1.0, 0)
+    with pytest.raises(ValueError, match=r"key: got ArrayImpl of shape \(3, 2\).*or 2 of them stacked"):
+        rollout(spec, terr, c, p, 1.0, jnp.zeros((3, 2), jnp.uint32))
     with pytest.raises(ValueError, match=r"params\.step_length: shape \(\); params_batched=True needs a leading "
                                          r"axis of the terrain's 2 envs"):
         rollout(spec, terr, c, p, 1.0, jax.random.PRNGKey(0), params_batched=True)

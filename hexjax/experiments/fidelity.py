@@ -34,6 +34,7 @@ from typing import Dict, List, Optional
 import numpy as np
 
 from hexjax.experiments.fidelity_view import CONTRACT, plot, report  # noqa: F401 (plot, report: the registry's)
+from hexjax.experiments.metrics import paired
 
 ALL = "all"
 
@@ -74,17 +75,6 @@ def matrix(spec: Dict) -> List[Cell]:
         for p in spec.get("payloads", []):
             add(Cell(t, payload=float(p)))
     return cells
-
-
-def paired(a, b):
-    """(mean of a - b, 95 % interval (lo, hi)) of paired samples, normal approximation; (nan, nan, nan) if empty."""
-    d = np.asarray(a, float) - np.asarray(b, float)
-    d = d[np.isfinite(d)]
-    if d.size == 0:
-        return math.nan, (math.nan, math.nan)
-    m = float(d.mean())
-    half = 1.96 * float(d.std(ddof=1)) / math.sqrt(d.size) if d.size > 1 else math.inf
-    return m, (m - half, m + half)
 
 
 def _digest(o, spec: Dict) -> str:

@@ -82,3 +82,16 @@ def batch_stats(summary: Summary, errors: GoalErrors) -> Dict[str, float]:
         "path_length_m": mean(summary.path_length),
         "tactile_steps": mean(np.asarray(summary.tactile_steps).sum(-1)),
     }
+
+
+def paired(a, b):
+    """(mean of a - b, 95 % interval (lo, hi)) of paired samples, normal approximation;
+    (nan, (nan, nan)) where no pair is finite. For 0/1 outcomes (success, fall) this is the paired difference of
+    two rates, the same envs under both conditions."""
+    d = np.asarray(a, float) - np.asarray(b, float)
+    d = d[np.isfinite(d)]
+    if d.size == 0:
+        return math.nan, (math.nan, math.nan)
+    m = float(d.mean())
+    half = 1.96 * float(d.std(ddof=1)) / math.sqrt(d.size) if d.size > 1 else math.inf
+    return m, (m - half, m + half)

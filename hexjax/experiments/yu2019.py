@@ -9,7 +9,6 @@ plane (cf. the paper's Figs. 8, 14, 15) and the CPG outputs of one leg (cf. Figs
 from __future__ import annotations
 
 import math
-import time
 from typing import Dict, Mapping, Optional
 
 import jax
@@ -18,9 +17,10 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from hexjax.control.cpg import MODE_NAMES, TRIPOD_GROUP, CPGController
+from hexjax.experiments.metrics import paired
 from hexjax.experiments.registry import experiment
 from hexjax.sim.config import RolloutConfig
-from hexjax.sim.physics import get_physics, traced_backend
+from hexjax.sim.physics import get_physics, shared_config, traced_backend
 from hexjax.sim.rollout import rollout
 from hexjax.tune.space import load_values, with_values
 from hexjax.world.presets import get_robot, get_terrain
@@ -46,10 +46,26 @@ def _climb_time(s, terrain, robot, dt: float) -> np.ndarray:
     return np.where(up.any(1), up.argmax(1) * dt, np.inf)
 
 
+def _floor_gap(s, terrain, robot) -> np.ndarray:
+    """(B,) m: how far above the (first) ditch's floor the lowest sole came while its foot was wholly over the
+    ditch (its centre at least a foot radius inside both walls); inf where no foot was. A foot that found the
+    floor reads ~0 (contact penetration), whatever the controller's own kinematic estimate of the depth."""
+    feet = np.asarray(s.foot_trace)  # (B, T, 6, 3)
+    pos, half = np.asarray(terrain.box_pos), np.asarray(terrain.box_half)
+    lo = (pos[:, 0, 0] + half[:, 0, 0] + robot.foot_radius)[:, None, None]
+    hi = (pos[:, 1, 0] - half[:, 1, 0] - robot.foot_radius)[:, None, None]
+    inside = (feet[..., 0] > lo) & (feet[..., 0] < hi)
+    sole = feet[..., 2] - robot.foot_radius - np.asarray(terrain.ground_z)[:, None, None]
+    return np.where(inside, sole, np.inf).min((1, 2))
+
+
 def _obstacle_start(terrain, kind: str) -> np.ndarray:
     """(B,) x (m) where the feature begins: the step's face, or the near edge of the (first) ditch."""
     pos, half = np.asarray(terrain.box_pos), np.asarray(terrain.box_half)
     return pos[:, 0, 0] + (-1 if kind == "step" else 1) * half[:, 0, 0]
+
+
+FLOOR_TOL = 0.003  # m: a sole this close to the ditch floor stands on it (Yu 2019's 18 / 40 mm footholds)
 
 
 def _summarise(ctrl: CPGController, robot, s, terrain, kind: str, stumble_tilt: float) -> Dict:
@@ -109,6 +125,13 @@ def _summarise(ctrl: CPGController, robot, s, terrain, kind: str, stumble_tilt: 
         "heading_change_deg_mean_abs": float(np.mean(np.abs(yaw))),
         "reached_feature_rate": float(np.mean(reached)),
     }
+    if kind == "ditch" and s.foot_trace is not None:
+        gap = _floor_gap(s, terrain, robot)
+        over = np.isfinite(gap)
+        out["foot_over_ditch_rate"] = float(np.mean(over))
+        out["floor_reached_rate"] = float(np.mean(gap <= FLOOR_TOL))
+        out["floor_reached_rate_of_feet_over_ditch"] = float(np.mean(gap[over] <= FLOOR_TOL)) if over.any() else None
+        out["per_env"]["floor_gap_mm"] = [round(1000 * float(g), 1) if np.isfinite(g) else None for g in gap]
     if climb is not None:
         up = np.isfinite(climb)
         out["right_feet_up_rate"] = float(np.mean(up))
@@ -124,8 +147,9 @@ def run_experiment(name: str, batch: int = 32, seed: int = 0, duration: Optional
     `preset`) on `batch` randomised terrains (the same terrains for every variant). `params` ({field: value},
     e.g. a tuned result) replaces the paper's numbers in every variant; `physics`: the physics preset (name,
     .yaml path or `PhysicsPreset`; on MJX: a step's success reads the foot traces). Returns {"config",
-    "results": {terrain: {variant: metrics}}, "_records"}; `_records` holds numpy traces of one env per row
-    for plotting and is not JSON."""
+    "results": {terrain: {variant: metrics}}, "comparisons", "_records"}; `comparisons` holds, per terrain,
+    the first variant (the paper's full controller) less each other one on the same envs (paired 95 %
+    intervals); `_records` (with `record`) holds numpy traces of one env per row for plotting and is not JSON."""
     ex = dict(preset if preset is not None else experiment(name).preset)
     if not isinstance(batch, int) or batch < 1:
         raise ValueError(f"batch={batch!r}: must be an integer >= 1")
@@ -144,32 +168,72 @@ def run_experiment(name: str, batch: int = 32, seed: int = 0, duration: Optional
                       "stumble_tilt_deg": math.degrees(stumble_tilt),
                       "solver_iterations": preset.iterations,
                       "params": {k: np.asarray(v).tolist() for k, v in (params or {}).items()} or "the paper's"},
-           "results": {}, "_records": {}, "physics": preset.record(backend)}
-    jobs = [(t, v, o or {}) for t in ex["terrains"] for v, o in variants]
-    bar = tqdm(jobs, desc=name, disable=not progress)
-    for terrain_name, label, overrides in bar:
-        bar.set_postfix_str(f"{terrain_name} / {label}")
-        spec = get_terrain(terrain_name, **ex.get("terrain_overrides", {}))
-        terrain = sample(spec, jax.random.PRNGKey(seed), batch)
-        # the variant is params (feedback, elevator, searching): every row of a terrain shares one program
-        ctrl = CPGController(robot)
-        p = with_values(ctrl.default_params(**{k: float(v) for k, v in overrides.items()}), params or {})
-        t0 = time.perf_counter()
-        s, st = rollout(robot, terrain, ctrl, p, dur, jax.random.PRNGKey(seed + 1),
-                        physics=preset.config(spec), backend=backend,
-                        # the step's success needs foot traces
-                        config=RolloutConfig(record=record or spec.kind == "step"),
-                        stats=True)
-        m = _summarise(ctrl, robot, s, terrain, spec.kind, stumble_tilt)
-        m["wall_s"] = round(time.perf_counter() - t0, 1)
-        m["compile_s"] = round(st.compile_s, 1)
-        out["results"].setdefault(terrain_name, {})[label] = m
+           "results": {}, "_records": {}, "timing": [], "physics": preset.record(backend)}
+    ctrl = CPGController(robot)
+    rows = [(t, v, o or {}) for t in ex["terrains"] for v, o in variants]
+    specs = {t: get_terrain(t, **ex.get("terrain_overrides", {})) for t in ex["terrains"]}
+    sampled = {t: sample(spec, jax.random.PRNGKey(seed), batch) for t, spec in specs.items()}
+    # every row in one batch (the variants are params, the terrains share a shape): the GPU steps the rows
+    # together instead of one small batch after another. Row r holds envs [r * batch, (r + 1) * batch); an
+    # env's terrain and its heading noise and controller key are the same in every variant (paired rows).
+    env_keys = jax.random.split(jax.random.PRNGKey(seed + 1), batch)
+    groups = {}  # terrain shapes -> row indices (presets of one kind share one)
+    for i, (t, _, _) in enumerate(rows):
+        shapes = tuple(np.shape(a) for a in jax.tree_util.tree_leaves(sampled[t]))
+        groups.setdefault(shapes, []).append(i)
+    summaries = {}
+    bar = tqdm(total=len(rows), desc=name, disable=not progress)
+    for idx in groups.values():
+        cat = lambda *xs: jnp.concatenate(xs)
+        terrain = jax.tree_util.tree_map(cat, *[sampled[rows[i][0]] for i in idx])
+        params_rows = [with_values(ctrl.default_params(**{k: float(v) for k, v in rows[i][2].items()}), params or {})
+                       for i in idx]
+        p = jax.tree_util.tree_map(lambda *xs: jnp.repeat(jnp.stack([jnp.asarray(x) for x in xs]), batch, 0),
+                                   *params_rows)
+        bar.set_postfix_str(", ".join(f"{rows[i][0]} / {rows[i][1]}" for i in idx))
+        s, st = rollout(robot, terrain, ctrl, p, dur, jnp.tile(env_keys, (len(idx), 1)),
+                        physics=shared_config(preset, [specs[rows[i][0]] for i in idx]), backend=backend,
+                        # the step's success and the ditch floor read the foot traces
+                        config=RolloutConfig(record=True),
+                        params_batched=True, stats=True)
+        out["timing"].append({"rows": [f"{rows[i][0]} / {rows[i][1]}" for i in idx], "envs": batch * len(idx),
+                              "wall_s": round(st.wall_s, 1), "compile_s": round(st.compile_s, 1)})
+        for j, i in enumerate(idx):
+            part = slice(j * batch, (j + 1) * batch)
+            summaries[i] = (jax.tree_util.tree_map(lambda a: a[part], s), sampled[rows[i][0]])
+        bar.update(len(idx))
+    bar.close()
+    for i, (terrain_name, label, _) in enumerate(rows):
+        s, terrain = summaries[i]
+        spec = specs[terrain_name]
+        out["results"].setdefault(terrain_name, {})[label] = _summarise(ctrl, robot, s, terrain, spec.kind,
+                                                                        stumble_tilt)
         if record:
             env = int(np.argmax(np.asarray(s.final_state.n_elev.sum(-1) + s.final_state.n_search.sum(-1))))
             out["_records"][(terrain_name, label)] = dict(
                 env=env, dt=ctrl.dt, feet=np.asarray(s.foot_trace[env]), x=np.asarray(s.ctrl_trace["x"][env]),
                 mode=np.asarray(s.ctrl_trace["mode"][env]), box_pos=np.asarray(terrain.box_pos[env]),
                 box_half=np.asarray(terrain.box_half[env]), ground_z=float(terrain.ground_z[env]), kind=spec.kind)
+    out["comparisons"] = _comparisons(out["results"])
+    return out
+
+
+def _comparisons(results: Dict) -> Dict:
+    """Per terrain, {"<first> - <other>": {metric: [mean, lo, hi]}}: the paired differences in percentage points
+    of success and falls between the first variant and each other one (the same terrains and draws)."""
+    out = {}
+    for t, vs in results.items():
+        names = list(vs)
+        ref = vs[names[0]]["per_env"]
+        for v in names[1:]:
+            other = vs[v]["per_env"]
+            row = {}
+            for key, field in (("success_pts", None), ("fall_pts", "fell")):
+                a = [c and not f for c, f in zip(ref["crossed"], ref["fell"])] if field is None else ref[field]
+                b = [c and not f for c, f in zip(other["crossed"], other["fell"])] if field is None else other[field]
+                m, (lo, hi) = paired(100 * np.asarray(a, float), 100 * np.asarray(b, float))
+                row[key] = [round(m, 2), round(lo, 2), round(hi, 2)]
+            out.setdefault(t, {})[f"{names[0]} - {v}"] = row
     return out
 
 
@@ -242,6 +306,16 @@ def report(res: Dict) -> str:
     c = res["config"]
     lines = [f"\n{c['experiment']}: robot {c['robot']}, {c['batch']} randomised terrains per row, "
              f"{c['duration_s']:g} s, seed {c['seed']}", format_experiment(res)]
+    for t, pairs in res.get("comparisons", {}).items():
+        for name, d in pairs.items():
+            lines.append(f"{t:9s} {name}: success {d['success_pts'][0]:+.1f} pts (95 % {d['success_pts'][1]:+.1f} .. "
+                         f"{d['success_pts'][2]:+.1f}), falls {d['fall_pts'][0]:+.1f} pts (95 % {d['fall_pts'][1]:+.1f} "
+                         f".. {d['fall_pts'][2]:+.1f})")
+    for t, vs in res["results"].items():
+        for v, m in vs.items():
+            if m.get("foot_over_ditch_rate"):
+                lines.append(f"{t:9s} {v}: a foot wholly over the ditch in {100 * m['foot_over_ditch_rate']:.0f} % of runs, "
+                             f"its sole on the floor (within {1000 * FLOOR_TOL:g} mm) in {100 * m['floor_reached_rate']:.0f} %")
     for t, vs in res["results"].items():
         if all(m["reached_feature_rate"] == 0 for m in vs.values()):
             lines.append(f"warning: on {t} no robot reached the obstacle in {c['duration_s']:g} s, so the rates above "

@@ -195,8 +195,9 @@ def rollout(robot: RobotSpec, terrain: Terrain, controller: Controller, params, 
 
     robot: RobotSpec; terrain: batched Terrain from `hexjax.world.terrain.sample`; controller: a
     `hexjax.control.Controller`; params: its params pytree (shared, or batched with leading axis B when
-    params_batched); duration: seconds of control after settling; key: PRNG key (initial heading noise and
-    controller init per env); mesh: optional `jax.sharding.Mesh` with an axis named 'batch' to shard the envs
+    params_batched); duration: seconds of control after settling; key: PRNG key split into one per env (initial
+    heading noise and controller init), or B keys stacked (rows that must share an env's noise, e.g. the variants
+    of a paired comparison in one batch); mesh: optional `jax.sharding.Mesh` with an axis named 'batch' to shard the envs
     over several devices; perturbation: optional batched `hexjax.world.randomization.Perturbation` (leading axis
     B, from `sample_perturbation`): per-env dynamics, sensing and faults, applied in every control step
     (`hexjax.sim.perturb`; every backend: on 'c' the model fields are set in each env's MjModel). Returns a
@@ -220,15 +221,16 @@ def rollout(robot: RobotSpec, terrain: Terrain, controller: Controller, params, 
     b = int(terrain.box_pos.shape[0])
     if b < 1:
         raise ValueError(f"terrain batch size={b}: must be >= 1")
-    check_key(key)
+    per_env_keys = check_key(key, b)
     if params_batched:
         check_params_batch(params, b)
     controller.validate_params(params)
     perturbed = perturbation is not None
     if perturbed:
         check_perturbation(perturbation, b)
+    keys = key if per_env_keys else jax.random.split(key, b)
     if backend == "c":
-        out, compile_s = rollout_c(robot, terrain, controller, params, n_ctrl, key, physics=physics,
+        out, compile_s = rollout_c(robot, terrain, controller, params, n_ctrl, keys, physics=physics,
                                    sensors=sensors, config=config, params_batched=params_batched, nthread=nthread,
                                    perturbation=perturbation)
         compiled = "compiled" if compile_s else "process"
@@ -236,7 +238,6 @@ def rollout(robot: RobotSpec, terrain: Terrain, controller: Controller, params, 
         impl = "warp" if backend == "warp" else "jax"
         sm, fn = _compiled(robot, physics, sensors, controller, config, n_ctrl, params_batched, impl, perturbed,
                            mesh)
-        keys = jax.random.split(key, b)
         model = sm.mjx_model
         if mesh is not None:
             if "batch" not in mesh.axis_names:
@@ -284,13 +285,16 @@ def rollout_function(robot: RobotSpec, controller: Controller, duration: float, 
     return sm.mjx_model, (fn if kept else fn.jitted)
 
 
-def check_key(key):
-    """One PRNG key (`jax.random.PRNGKey(seed)` or `jax.random.key(seed)`), or one ValueError line."""
+def check_key(key, b: int) -> bool:
+    """Whether `key` holds one key per env (True) or one key the rollout splits (False): a PRNG key
+    (`jax.random.PRNGKey(seed)` or `jax.random.key(seed)`) or `b` of them stacked; else one ValueError line."""
     dtype, shape = getattr(key, "dtype", None), np.shape(key)
     typed = dtype is not None and jax.dtypes.issubdtype(dtype, jax.dtypes.prng_key)
-    if not (typed and shape == () or not typed and shape == (2,) and dtype == np.uint32):
-        raise ValueError(f"key: got {type(key).__name__} of shape {shape} and dtype {dtype}: give one PRNG key, "
-                         "jax.random.PRNGKey(seed) or jax.random.key(seed) (the rollout splits it per env)")
+    if typed and shape in ((), (b,)) or not typed and dtype == np.uint32 and shape in ((2,), (b, 2)):
+        return len(shape) == (1 if typed else 2)
+    raise ValueError(f"key: got {type(key).__name__} of shape {shape} and dtype {dtype}: give one PRNG key, "
+                     f"jax.random.PRNGKey(seed) or jax.random.key(seed) (the rollout splits it per env), or {b} "
+                     "of them stacked (one per env)")
 
 
 def check_params_batch(params, b: int):

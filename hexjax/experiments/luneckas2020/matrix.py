@@ -19,7 +19,9 @@ rates, and the analytic model (Eqs. 8-14) beside the simulation."""
 
 from __future__ import annotations
 
+import json
 import math
+import os
 import time
 from typing import Dict, Sequence
 
@@ -30,6 +32,7 @@ from hexjax.experiments.luneckas2020 import error_model as em
 from hexjax.experiments.luneckas2020.dataset import concat_datasets, save_dataset, sequences_from_runs
 from hexjax.experiments.luneckas2020.walks import (DISTANCES, GAITS, METHODS, STUCK_RATIO, STUCK_WINDOW, errors_from,
                                                    readout_index, robot_width, simulate_gait)
+from hexjax.sim.physics import get_physics
 from hexjax.world.presets import get_robot
 from hexjax.world.terrain import LUNECKAS2020_CATEGORIES
 
@@ -56,9 +59,11 @@ def _cell(dx, dy, da, fell, stuck, nan, d):
 
 def run_luneckas2020(n: int = 16, seed: int = 0, gaits: Sequence[str] = GAITS,
                      distances: Sequence[float] = DISTANCES, progress: bool = True, keep_sequences: bool = False,
-                     physics="validated") -> Dict:
+                     physics="validated", partial: str = "") -> Dict:
     """Runs the whole matrix; returns a JSON-ready dict (see module doc) and, with keep_sequences,
-    `_sequences`: the runs as an error-predictor dataset (`predictor`)."""
+    `_sequences`: the runs as an error-predictor dataset (`predictor`). `partial`: a file where each finished
+    gait is kept (a gait's rollout is minutes on a GPU at n = 512); a rerun with the same settings takes the
+    gaits kept there instead of running them again (not with keep_sequences, whose runs are not kept)."""
     if not isinstance(n, int) or n < 1:
         raise ValueError(f"n={n!r}: must be an integer >= 1")
     for g in gaits:
@@ -76,7 +81,21 @@ def run_luneckas2020(n: int = 16, seed: int = 0, gaits: Sequence[str] = GAITS,
                       f"over the last {STUCK_WINDOW:.0%} of the path", "backend": jax.default_backend(),
                       "paper_relative_error_pct": {"without": 24.0, "with": 12.0}},
            "calibration": {}, "cells": {}, "model": {}, "timing": {}}
+    res["physics"] = get_physics(physics).record()  # a resumed run keeps only gaits made on the same physics
+    key = json.dumps({k: res["config"][k] for k in ("n", "seed", "distances_m")} | {"physics": res["physics"]},
+                     sort_keys=True)
+    kept = {}
+    if partial and not keep_sequences and os.path.exists(partial):
+        with open(partial) as f:
+            saved = json.load(f)
+        if saved.get("key") == key:
+            kept = saved["gaits"]
+            print(f"luneckas2020: resumed {len([g for g in gaits if g in kept])} of {len(gaits)} gaits from {partial}")
     for gait in gaits:
+        if gait in kept:
+            for part in ("calibration", "cells", "model", "timing"):
+                res[part][gait] = kept[gait][part]
+            continue
         fits = {}  # dL per method, fitted at the shortest distance (`_model_vs_sim`)
         t0 = time.perf_counter()
         ctrl, params, terrain, s, groups, st = simulate_gait(gait, n, seed, d_max, progress=progress, physics=physics)
@@ -119,7 +138,13 @@ def run_luneckas2020(n: int = 16, seed: int = 0, gaits: Sequence[str] = GAITS,
         if keep_sequences:
             res.setdefault("_sequences", []).append(
                 sequences_from_runs(ctrl, params, terrain, s, groups, gait, d_max, width))
+        elif partial:
+            kept[gait] = {part: res[part][gait] for part in ("calibration", "cells", "model", "timing")}
+            with open(partial, "w") as f:
+                json.dump({"key": key, "gaits": kept}, f)
     res["summary"] = _summary(res)
+    if partial and os.path.exists(partial):
+        os.remove(partial)  # the whole matrix is in the result
     return res
 
 
@@ -313,7 +338,7 @@ def plot_luneckas(res: Dict, stem: str) -> list:
 # The experiment (configs/experiments/luneckas2020.yaml) -----------------------------------------------------
 def run(o, entry) -> Dict:
     res = run_luneckas2020(n=o.n, seed=o.seed, gaits=o.gaits, distances=o.distances, keep_sequences=bool(o.dataset),
-                           physics=o.physics)
+                           physics=o.physics, partial=(o.json + ".partial.json") if o.json else "")
     if o.dataset:
         save_dataset(o.dataset, concat_datasets(res.pop("_sequences")),
                      {"source": "experiment luneckas2020", "n": o.n, "seed": o.seed})

@@ -136,7 +136,7 @@ def _gains(tp: _Template, mi: mujoco.MjModel, scale) -> None:
     mi.actuator_biasprm[:, 1:3] *= scale[:, None]
 
 
-def rollout_c(robot: RobotSpec, terrain, controller, params, n_ctrl: int, key, *, physics: PhysicsConfig,
+def rollout_c(robot: RobotSpec, terrain, controller, params, n_ctrl: int, keys, *, physics: PhysicsConfig,
               sensors: SensorConfig, config: RolloutConfig, params_batched: bool = False,
               nthread: Optional[int] = None, chunk: int = 8192, progress: bool = False, perturbation=None):
     """`hexjax.sim.rollout.rollout` with backend='c' (checked there): (the same `Summary`, with no traces;
@@ -166,7 +166,6 @@ def rollout_c(robot: RobotSpec, terrain, controller, params, n_ctrl: int, key, *
     chunk = max(1, min(int(chunk), b))
     n_chunks = math.ceil(b / chunk)
 
-    keys = jax.random.split(key, b)
     yaw0 = np.asarray(jax.vmap(lambda k: jax.random.uniform(jax.random.split(k)[0], (), minval=-config.yaw_noise,
                                                             maxval=config.yaw_noise))(keys))
     k_ctrl = jax.vmap(lambda k: jax.random.split(k)[1])(keys)
