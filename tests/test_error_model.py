@@ -60,3 +60,41 @@ def test_obstacles_in_path_and_prediction():
     # least-squares dL through the origin recovers a planted value
     n = np.array([2, 4, 6, 8])
     assert em.fit_dL(n * 3 * 0.012, n) == pytest.approx(0.012)
+
+
+def test_torso_strikes_read_box_tops_under_the_turned_torso():
+    """One 4 cm box centred 0.3 m ahead: the torso above it with its underside 3 mm over the top strikes, 10 mm
+    over does not; beside it (0.5 m to the left) nothing is under the footprint; turned 90 deg the footprint
+    (long along y then) still covers the box; a padded (invalid) box never counts."""
+    import types
+
+    from hexjax.experiments.luneckas2020.walks import torso_strikes
+    from hexjax.world.presets import luneckas2020
+
+    robot = luneckas2020()
+    under = 0.04 + 0.5 * robot.body_thickness  # torso centre height with its underside on the box top
+    trace = np.array([[[0.3, 0.0, under + 0.003, 0.0], [0.3, 0.0, under + 0.010, 0.0], [0.3, 0.5, under, 0.0],
+                       [0.3, 0.0, under + 0.003, np.pi / 2]]] * 2)
+    terrain = types.SimpleNamespace(box_pos=np.array([[[0.3, 0.0, 0.02]]] * 2),
+                                    box_half=np.array([[[0.02, 0.02, 0.02]]] * 2),
+                                    box_valid=np.array([[True], [False]]))
+    hit = torso_strikes(robot, trace, terrain)
+    assert hit[0].tolist() == [True, False, False, True]
+    assert not hit[1].any()
+
+
+def test_error_causes_add_up_to_the_cells_mean():
+    """Five runs of 1 m, one fallen: the upright four split into stuck (0.5 m short), struck (0.1 m) and two clean
+    (0.02, 0.04 m); each class's part is its share times its mean, and the parts add to the cell's 16.5 %."""
+    from hexjax.experiments.luneckas2020.matrix import _causes
+
+    dx = np.array([0.5, 0.1, 0.02, 0.04, 0.9])
+    dy = np.zeros(5)
+    bad = np.array([False, False, False, False, True])
+    stuck = np.array([True, False, False, False, True])
+    struck = np.array([True, True, False, False, False])
+    c = _causes(dx, dy, bad, stuck, struck, 1.0)
+    assert c["stuck"]["share"] == 0.25 and c["torso_struck"]["share"] == 0.25 and c["clean"]["share"] == 0.5
+    np.testing.assert_allclose([c["stuck"]["part_pct"], c["torso_struck"]["part_pct"], c["clean"]["part_pct"]],
+                               [12.5, 2.5, 1.5])
+    assert math.isclose(sum(v["part_pct"] for v in c.values()), 16.5)

@@ -30,8 +30,9 @@ import numpy as np
 
 from hexjax.experiments.luneckas2020 import error_model as em
 from hexjax.experiments.luneckas2020.dataset import concat_datasets, save_dataset, sequences_from_runs
-from hexjax.experiments.luneckas2020.walks import (DISTANCES, GAITS, METHODS, STUCK_RATIO, STUCK_WINDOW, errors_from,
-                                                   readout_index, robot_width, simulate_gait)
+from hexjax.experiments.luneckas2020.walks import (DISTANCES, GAITS, METHODS, STRIKE_GAP, STUCK_RATIO, STUCK_WINDOW,
+                                                   errors_from, readout_index, robot_width, simulate_gait,
+                                                   torso_strikes)
 from hexjax.sim.physics import get_physics
 from hexjax.world.presets import get_robot
 from hexjax.world.terrain import LUNECKAS2020_CATEGORIES
@@ -82,8 +83,10 @@ def run_luneckas2020(n: int = 16, seed: int = 0, gaits: Sequence[str] = GAITS,
                       "paper_relative_error_pct": {"without": 24.0, "with": 12.0}},
            "calibration": {}, "cells": {}, "model": {}, "timing": {}}
     res["physics"] = get_physics(physics).record()  # a resumed run keeps only gaits made on the same physics
-    key = json.dumps({k: res["config"][k] for k in ("n", "seed", "distances_m")} | {"physics": res["physics"]},
-                     sort_keys=True)
+    # what a kept gait depends on; "readouts" names the per-run figures a kept gait carries (a gait kept before
+    # the torso-strike and slip readouts were added is run again)
+    key = json.dumps({k: res["config"][k] for k in ("n", "seed", "distances_m")} | {"physics": res["physics"],
+                     "readouts": "causes, torso strikes, foot slip"}, sort_keys=True)
     kept = {}
     if partial and not keep_sequences and os.path.exists(partial):
         with open(partial) as f:
@@ -102,6 +105,8 @@ def run_luneckas2020(n: int = 16, seed: int = 0, gaits: Sequence[str] = GAITS,
         wall = time.perf_counter() - t0
         trace = np.asarray(s.trace)  # (B, T, 4): x, y, z, yaw
         n_steps = trace.shape[1]
+        strikes = torso_strikes(get_robot("luneckas2020"), trace, terrain)  # (B, T)
+        slip = np.asarray(s.foot_slip)  # (B,) m over the whole walk
         fell_t = np.asarray(s.fall_time)
         nan = np.asarray(s.nan)
         p0 = np.asarray(s.start_pose)
@@ -111,7 +116,7 @@ def run_luneckas2020(n: int = 16, seed: int = 0, gaits: Sequence[str] = GAITS,
                                "step_length_m": float(ctrl.pattern.step_length)}
         for d in distances:
             if d == d_max:
-                pose, t_read = np.asarray(s.end_pose), math.inf
+                pose, t_read, k = np.asarray(s.end_pose), math.inf, n_steps - 1
             else:
                 k = readout_index(ctrl, params, d, n_steps)
                 pose, t_read = trace[:, k][:, [0, 1, 3]], (k + 1) * ctrl.dt
@@ -122,13 +127,17 @@ def run_luneckas2020(n: int = 16, seed: int = 0, gaits: Sequence[str] = GAITS,
             _, _, _, adv0 = errors_from(p0, trace[:, k0][:, [0, 1, 3]], d)
             stuck = (adv - adv0) < STUCK_RATIO * STUCK_WINDOW * d
             dkey = f"{d:g}m"
+            struck = strikes[:, :k + 1].mean(1)  # share of the walk so far with the torso on or against a box
             for cat, meth, sl in groups:
                 cell = _cell(dx[sl], dy[sl], da[sl], fell[sl], stuck[sl], nan[sl], d)
+                cell["causes"] = _causes(dx[sl], dy[sl], fell[sl] | nan[sl], stuck[sl], struck[sl] > 0, d)
                 cell["per_env"] = {"dx_cm": (100 * dx[sl]).round(2).tolist(), "dy_cm": (100 * dy[sl]).round(2).tolist(),
                                    "dalpha_deg": np.degrees(da[sl]).round(2).tolist(), "fell": fell[sl].tolist(),
                                    "stuck": stuck[sl].tolist(),
                                    "overcoming_steps": np.asarray(s.final_state.n_overcome[sl]).sum(-1).round(1).tolist(),
-                                   "tactile_steps": np.asarray(s.tactile_steps[sl]).sum(-1).tolist()}
+                                   "tactile_steps": np.asarray(s.tactile_steps[sl]).sum(-1).tolist(),
+                                   "torso_strike_share": struck[sl].round(4).tolist(),
+                                   "foot_slip_cm_whole_walk": (100 * slip[sl]).round(2).tolist()}
                 if cat == "flat":
                     res["calibration"].setdefault(gait, {})[dkey] = cell
                 else:
@@ -146,6 +155,23 @@ def run_luneckas2020(n: int = 16, seed: int = 0, gaits: Sequence[str] = GAITS,
     if partial and os.path.exists(partial):
         os.remove(partial)  # the whole matrix is in the result
     return res
+
+
+def _causes(dx, dy, bad, stuck, struck, d) -> Dict:
+    """Where a cell's mean relative error (over its upright runs) comes from: the upright runs split into those
+    that got stuck (little progress at the end), those whose torso struck a box but went on, and the clean rest;
+    per class its share of the upright runs, its mean relative error, and its part of the cell's mean (share x
+    mean; the parts add up to the cell's figure)."""
+    ok = ~bad
+    rel = 100 * np.hypot(dx, dy) / d
+    classes = {"stuck": ok & stuck, "torso_struck": ok & ~stuck & struck, "clean": ok & ~stuck & ~struck}
+    n_ok = max(int(ok.sum()), 1)
+    out = {}
+    for name, m in classes.items():
+        share = float(m.sum()) / n_ok
+        mean = float(rel[m].mean()) if m.any() else 0.0
+        out[name] = {"share": share, "rel_error_pct": mean if m.any() else None, "part_pct": share * mean}
+    return out
 
 
 def _model_vs_sim(res, gait, dkey, d, terrain, groups, dx, dy, da, bad, width, fits):
@@ -219,7 +245,18 @@ def _summary(res) -> Dict:
                 n_pairs += 1
                 wave_better += (res["cells"]["wave"][cat][dkey]["with"]["error_cm"]
                                 < res["cells"]["tripod"][cat][dkey]["with"]["error_cm"])
-    return {"rows": rows, "cells_with_lower": wins, "cells_compared": total,
+    # the overall relative error of each method as the sum of its causes' parts (means over the cells)
+    breakdown = {}
+    for meth in METHODS:
+        cells = [dists[dk][meth] for cats in res["cells"].values() for dists in cats.values() for dk in dists
+                 if meth in dists[dk] and "causes" in dists[dk][meth]]
+        if cells:
+            breakdown[meth] = {c: float(np.mean([x["causes"][c]["part_pct"] for x in cells]))
+                               for c in ("stuck", "torso_struck", "clean")}
+            breakdown[meth]["share_stuck"] = float(np.mean([x["causes"]["stuck"]["share"] for x in cells]))
+            breakdown[meth]["share_torso_struck"] = float(np.mean([x["causes"]["torso_struck"]["share"] for x in cells]))
+    return {"rows": rows, "cells_with_lower": wins, "cells_compared": total, "error_breakdown_pct": breakdown,
+            "torso_strike": f"an obstacle top within {100 * STRIKE_GAP:g} cm of the torso's underside at some step",
             "overall_rel_error_without_pct": mean("rel_error_without_pct"),
             "overall_rel_error_with_pct": mean("rel_error_with_pct"),
             "low_density_1m_rel_error_without_pct": mean("rel_error_without_pct", low1),
@@ -249,6 +286,10 @@ def format_luneckas(res: Dict) -> str:
               f"{s['overall_rel_error_with_pct']:.1f} % with (paper: ~24 % -> ~12 %)",
               f"low density, 1 m: {s['low_density_1m_rel_error_without_pct']:.1f} % -> {s['low_density_1m_rel_error_with_pct']:.1f} %",
               f"wave better than tripod (with the method): {s['wave_better_than_tripod_cells']} cells (paper: 6 of 8)"]
+    for meth, b in s.get("error_breakdown_pct", {}).items():
+        lines.append(f"where the error comes from, {meth}: stuck runs {b['stuck']:.1f} pts ({100 * b['share_stuck']:.0f} % of "
+                     f"runs), torso struck a box {b['torso_struck']:.1f} pts ({100 * b['share_torso_struck']:.0f} %), "
+                     f"clean walks {b['clean']:.1f} pts")
     for gait, dd in res["model"].items():
         for dkey, mm in dd.items():
             for meth, m in mm.items():

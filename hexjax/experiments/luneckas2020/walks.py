@@ -47,6 +47,32 @@ def errors_from(start_pose, pose, d: float):
     return pose_errors(np.asarray(start_pose), np.asarray(pose), d, xp=np)
 
 
+STRIKE_GAP = 0.005  # m: an obstacle top this close below the torso's underside (or above it) is a torso strike
+
+
+def torso_strikes(robot, trace, terrain, chunk: int = 256) -> np.ndarray:
+    """(B, T) bool: control steps where an obstacle top under the torso's footprint (the body box, turned by
+    the torso's yaw) reaches within `STRIKE_GAP` of the torso's underside: the torso rests on or rides against
+    a box, which the paper's robot avoids by its height over 5-8 cm obstacles. From the torso trace (x, y, z,
+    yaw per control step) and the terrain boxes; tilt is ignored (the underside is taken level)."""
+    half_l, half_w, below = 0.5 * robot.body_length, 0.5 * robot.body_width, 0.5 * robot.body_thickness
+
+    @jax.jit
+    def one(tr, pos, half, valid):  # (T, 4), (M, 3), (M, 3), (M,) -> (T,)
+        dx, dy = pos[None, :, 0] - tr[:, None, 0], pos[None, :, 1] - tr[:, None, 1]
+        c, s_ = jnp.cos(tr[:, 3])[:, None], jnp.sin(tr[:, 3])[:, None]
+        bx, by = c * dx + s_ * dy, -s_ * dx + c * dy
+        under = (jnp.abs(bx) < half_l + half[None, :, 0]) & (jnp.abs(by) < half_w + half[None, :, 1]) & valid[None]
+        top = jnp.where(under, (pos[:, 2] + half[:, 2])[None], -jnp.inf).max(-1)
+        return tr[:, 2] - below - top < STRIKE_GAP
+
+    many = jax.jit(jax.vmap(one))
+    pos, half, valid = (np.asarray(a) for a in (terrain.box_pos, terrain.box_half, terrain.box_valid))
+    trace = np.asarray(trace)
+    return np.concatenate([np.asarray(many(trace[i:i + chunk], pos[i:i + chunk], half[i:i + chunk],
+                                           valid[i:i + chunk])) for i in range(0, trace.shape[0], chunk)])
+
+
 def robot_width(robot) -> float:
     """a of Luneckas 2020 Eq. 12: the robot's width between its left and right front/hind feet, m."""
     return 2 * (robot.hip_y + robot.stance_radial * math.cos(robot.stance_splay))
