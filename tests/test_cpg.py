@@ -176,6 +176,27 @@ def test_searching_reflex_depths_and_fsm(depth, found):
         assert abs(searching.sum() * ctrl.dt - ctrl.search_periods * 10.0) < 1.0
 
 
+def test_walk_on_after_a_give_up_releases_the_gait():
+    """The 80 mm case with `walk_on`: the search gives up as before (one give-up after its search periods, the leg
+    at its AEP posture), and then the gait goes on instead of waiting for good: the alien tripod swings again and
+    RF, in the air over the hole, takes its next stance with its group and swings again after it."""
+    ctrl = CPGController(ROBOT)
+    p = ctrl.default_params(walk_on=1.0)
+    z0 = _z_aep(ctrl, p)
+    st = _walk(ctrl, p, 80.0, z0, _rf(-0.080), 3.0)
+    n_fail = np.asarray(st.n_fail[:, RF])
+    assert n_fail[-1] >= 1 and np.asarray(st.n_found[-1, RF]) == 0
+    t_fail = int(np.nonzero(np.diff(n_fail) > 0)[0][0]) + 1
+    alien = TRIPOD_GROUP != TRIPOD_GROUP[RF]
+    swing = np.asarray(st.swing)
+    assert np.all(swing[t_fail:, alien].max(0) > 0.5)  # every alien leg swung again
+    assert swing[t_fail:, RF].min() < 0.5  # RF went into stance with its group
+    # the waiting default never releases: after its give-up the alien legs never swing again
+    hold = jax.tree_util.tree_map(np.asarray, _walk(ctrl, ctrl.default_params(), 80.0, z0, _rf(-0.080), 3.0))
+    t_fail0 = int(np.nonzero(np.diff(hold.n_fail[:, RF]) > 0)[0][0]) + 1
+    assert np.all(hold.swing[t_fail0:, alien].max(0) < 0.5)
+
+
 def test_elevator_reflex_reverses_leader_and_raises_clearance():
     """Eqs. 10-11: RF meets a 40 mm wall 1 cm before its AEP. On the rising edge of lambda_ob the leader's
     y_1 jumps to -1 (retraction), and the regenerated swing reaches the 80 mm clearance, clearing the

@@ -169,6 +169,12 @@ def test_tuning_is_deterministic_and_resumes(tmp_path):
     assert len(evaluated) == 3 and a["final"]["validation"]["objective"] == min(
         e["validation"]["objective"] for e in evaluated)
     assert os.path.exists(tmp_path / "a" / "tune.png") and os.path.exists(tmp_path / "a" / "log.json")
+    # the picked params as a params preset beside the log: they load as the picked iterate's
+    from hexjax.tune.space import load_values
+    kept = load_values(str(tmp_path / "a" / "params.yaml"))
+    assert set(kept) == set(a["final"]["params"])
+    for k, v in a["final"]["params"].items():
+        np.testing.assert_allclose(kept[k], v, rtol=1e-6)
     # extend run a by one step from its checkpoint; it must match a fresh 3-step run
     c = tune(_small_config(steps=3), str(tmp_path / "a"), progress=False)
     d = tune(_small_config(steps=3), str(tmp_path / "b"), progress=False)
@@ -246,3 +252,24 @@ def test_es_baseline_improves_and_is_deterministic(tmp_path):
     assert a["improvement_pct"] > 30.0, a["improvement_pct"]
     assert a["final"]["held_out"]["objective"] < a["start"]["held_out"]["objective"]
     assert a["final"]["params"]["step_height"] < 0.8 * a["start"]["params"]["step_height"]
+
+
+def test_params_presets_load_by_path_and_name(tmp_path, monkeypatch):
+    """A params preset (`values`) loads from its .yaml path and, placed in configs/params/, by name; a preset
+    without values and an unknown name fail in one line."""
+    import yaml
+
+    from hexjax.tune.space import load_values
+    from hexjax.world import files
+
+    (tmp_path / "params").mkdir()
+    doc = {"controller": "cpg", "gait": "tripod", "values": {"clearance": 0.05, "f_contact": [5.0, 5.0, 1.0]}}
+    (tmp_path / "params" / "mine.yaml").write_text(yaml.safe_dump(doc))
+    (tmp_path / "params" / "empty.yaml").write_text(yaml.safe_dump({"controller": "cpg"}))
+    assert load_values(str(tmp_path / "params" / "mine.yaml")) == doc["values"]
+    monkeypatch.setattr(files, "config_dir", lambda: tmp_path)
+    assert load_values("mine") == doc["values"]
+    with pytest.raises(ValueError, match="needs `values`"):
+        load_values("empty")
+    with pytest.raises(ValueError, match="mines"):
+        load_values("mines")

@@ -87,7 +87,8 @@ def _summarise(ctrl: CPGController, robot, s, terrain, kind: str, stumble_tilt: 
     fell = np.asarray(s.fell)
     modes = np.asarray(ctrl.mode(s.final_state))
     n_found = fs.n_found.sum(-1)
-    failed = fs.failed > 0.5
+    failed = fs.failed > 0.5  # legs waiting after a give-up at the end of the run
+    gave_up = fs.n_fail.sum(-1) > 0  # runs where some search gave up (with walk_on the leg walks on after)
     # for a leg that gave up: distance of the measured foot from its AEP posture (q_ref)
     err = np.linalg.norm(np.asarray(leg_fk(robot, jnp.asarray(fs.q_meas)) - leg_fk(robot, jnp.asarray(fs.q_ref))), axis=-1)
     aep_err = np.where(failed, err, np.nan)
@@ -112,7 +113,7 @@ def _summarise(ctrl: CPGController, robot, s, terrain, kind: str, stumble_tilt: 
         "envs_with_found_foothold": float(np.mean(n_found > 0)),
         "search_depth_mm_max": float(1000 * depth.max()) if depth.size else 0.0,
         "search_depth_mm_mean_of_found": float(1000 * depth[n_found > 0].mean()) if np.any(n_found > 0) else None,
-        "out_of_range_envs": float(np.mean(failed.any(-1))),
+        "out_of_range_envs": float(np.mean(gave_up)),
         "failed_leg_aep_error_mm_max": float(1000 * np.nanmax(aep_err)) if np.any(failed) else None,
         "failed_with_alien_group_in_stance_prolong": float(np.mean(alien_prolong)) if alien_prolong else None,
         "stance_prolong_steps_during_search_mean": float(fs.wait_steps.sum(-1).mean()),
@@ -120,7 +121,7 @@ def _summarise(ctrl: CPGController, robot, s, terrain, kind: str, stumble_tilt: 
                     "crossed": crossed.tolist(), "fell": fell.tolist(),
                     "max_tilt_deg": np.degrees(np.asarray(s.max_tilt)).round(1).tolist(),
                     "elevator_triggers": fs.n_elev.sum(-1).tolist(), "search_triggers": fs.n_search.sum(-1).tolist(),
-                    "search_depth_mm": (1000 * depth).round(1).tolist(), "gave_up": failed.any(-1).tolist(),
+                    "search_depth_mm": (1000 * depth).round(1).tolist(), "gave_up": gave_up.tolist(),
                     "heading_change_deg": yaw.round(1).tolist()},
         "heading_change_deg_mean_abs": float(np.mean(np.abs(yaw))),
         "reached_feature_rate": float(np.mean(reached)),
@@ -148,8 +149,7 @@ def run_experiment(name: str, batch: int = 32, seed: int = 0, duration: Optional
     e.g. a tuned result) replaces the paper's numbers in every variant; `physics`: the physics preset (name,
     .yaml path or `PhysicsPreset`; on MJX: a step's success reads the foot traces). Returns {"config",
     "results": {terrain: {variant: metrics}}, "comparisons", "_records"}; `comparisons` holds, per terrain,
-    the first variant (the paper's full controller) less each other one on the same envs (paired 95 %
-    intervals); `_records` (with `record`) holds numpy traces of one env per row for plotting and is not JSON."""
+    each variant less each later one on the same envs (paired 95 % intervals); `_records` (with `record`) holds numpy traces of one env per row for plotting and is not JSON."""
     ex = dict(preset if preset is not None else experiment(name).preset)
     if not isinstance(batch, int) or batch < 1:
         raise ValueError(f"batch={batch!r}: must be an integer >= 1")
@@ -219,21 +219,21 @@ def run_experiment(name: str, batch: int = 32, seed: int = 0, duration: Optional
 
 
 def _comparisons(results: Dict) -> Dict:
-    """Per terrain, {"<first> - <other>": {metric: [mean, lo, hi]}}: the paired differences in percentage points
-    of success and falls between the first variant and each other one (the same terrains and draws)."""
+    """Per terrain, {"<a> - <b>": {metric: [mean, lo, hi]}} for every pair of variants (a listed before b): the
+    paired differences in percentage points of success and falls (the same terrains and draws)."""
     out = {}
     for t, vs in results.items():
         names = list(vs)
-        ref = vs[names[0]]["per_env"]
-        for v in names[1:]:
-            other = vs[v]["per_env"]
-            row = {}
-            for key, field in (("success_pts", None), ("fall_pts", "fell")):
-                a = [c and not f for c, f in zip(ref["crossed"], ref["fell"])] if field is None else ref[field]
-                b = [c and not f for c, f in zip(other["crossed"], other["fell"])] if field is None else other[field]
-                m, (lo, hi) = paired(100 * np.asarray(a, float), 100 * np.asarray(b, float))
-                row[key] = [round(m, 2), round(lo, 2), round(hi, 2)]
-            out.setdefault(t, {})[f"{names[0]} - {v}"] = row
+        for i, a_name in enumerate(names):
+            for v in names[i + 1:]:
+                ref, other = vs[a_name]["per_env"], vs[v]["per_env"]
+                row = {}
+                for key, field in (("success_pts", None), ("fall_pts", "fell")):
+                    a = [c and not f for c, f in zip(ref["crossed"], ref["fell"])] if field is None else ref[field]
+                    b = [c and not f for c, f in zip(other["crossed"], other["fell"])] if field is None else other[field]
+                    m, (lo, hi) = paired(100 * np.asarray(a, float), 100 * np.asarray(b, float))
+                    row[key] = [round(m, 2), round(lo, 2), round(hi, 2)]
+                out.setdefault(t, {})[f"{a_name} - {v}"] = row
     return out
 
 

@@ -214,8 +214,26 @@ def _finish(problem: Problem, log, out_dir: str, method: str) -> Dict[str, Any]:
     os.makedirs(out_dir, exist_ok=True)
     with open(os.path.join(out_dir, "log.json"), "w") as f:
         json.dump(res, f, indent=2, default=float)
+    write_params_preset(res, os.path.join(out_dir, "params.yaml"))
     plot_log(res, os.path.join(out_dir, "tune.png"))
     return res
+
+
+def write_params_preset(res: Dict[str, Any], path: str) -> None:
+    """The picked params as a params preset (`values`, with what made them): copied into configs/params/ it
+    loads by name wherever params are taken (`hexjax experiment yu2019-ditch --params <name>`)."""
+    import yaml
+
+    cfg = res["config"]
+    doc = {"controller": cfg["controller"], "gait": cfg["gait"],
+           "made_by": {"method": res["method"], "terrain": cfg["terrain"], "eval_physics": cfg.get("eval_physics"),
+                       "step": res["final"]["step"], "rollouts": res["final"]["rollouts"],
+                       "held_out_objective": float(res["final"]["held_out"]["objective"]),
+                       "start_held_out_objective": float(res["start"]["held_out"]["objective"])},
+           "values": {k: np.asarray(v).tolist() for k, v in res["final"]["params"].items()}}
+    with open(path, "w") as f:
+        f.write("# Params picked by `hexjax tune` (its log.json beside this file); a params preset: docs/configs.md.\n")
+        yaml.safe_dump(doc, f, sort_keys=False, default_flow_style=None)
 
 
 def plot_log(res: Dict[str, Any], path: str) -> None:

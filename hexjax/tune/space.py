@@ -101,9 +101,20 @@ def with_values(params, values: Mapping[str, Any], source: str = "params"):
 
 
 def load_values(path: str) -> Dict[str, Any]:
-    """Param values from a JSON file: a `hexjax tune` log.json (its picked iterate, "final") or a plain
-    {name: value} mapping."""
+    """Param values by name: a params preset (configs/params/<name>.yaml, or a .yaml path: its `values`
+    mapping), a `hexjax tune` log.json (its picked iterate, "final") or a JSON file of a plain {name: value}
+    mapping."""
     import json
+
+    from hexjax.world.files import is_path, read_yaml, resolve
+
+    if not str(path).endswith(".json") and (not is_path(path) or str(path).endswith((".yaml", ".yml"))):
+        f = resolve("params", path)  # a wrong name: one line with the nearest preset names
+        raw = read_yaml(f)
+        d = raw.get("values") if isinstance(raw, dict) else None
+        if not isinstance(d, dict) or not d:
+            raise ValueError(f"{f}: a params preset needs `values`: a mapping of param names to values")
+        return d
     try:
         with open(path) as f:
             d = json.load(f)

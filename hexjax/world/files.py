@@ -15,7 +15,7 @@ from typing import Any, Dict, List, Mapping, Optional
 
 KINDS = {"robots": "robot preset", "terrains": "terrain preset", "experiments": "experiment",
          "commands": "command", "tune": "tune config", "sensors": "sensor preset",
-         "physics": "physics preset"}
+         "physics": "physics preset", "params": "params preset"}
 
 
 def config_dir() -> Path:

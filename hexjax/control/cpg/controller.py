@@ -86,7 +86,8 @@ class CPGController(Controller):
             raised_tolerance=jnp.asarray(0.015),
             temp_force=jnp.asarray(1.0), temp_phase=jnp.asarray(0.05), temp_height=jnp.asarray(0.002),
             feedback=jnp.asarray(float(self.feedback)), elevator=jnp.asarray(float(self.elevator)),
-            searching=jnp.asarray(float(self.searching)), smooth=jnp.asarray(float(self.smooth)))
+            searching=jnp.asarray(float(self.searching)), smooth=jnp.asarray(float(self.smooth)),
+            walk_on=jnp.asarray(0.0))
 
     def validate_params(self, p: CPGParams) -> None:
         """Host-side checks on concrete params, before tracing; names the field and value."""
@@ -107,7 +108,7 @@ class CPGController(Controller):
             v = arr(f)
             if not np.all(np.isfinite(v)) or np.any(v < 0):
                 raise ValueError(f"cpg.{f}={v.tolist()!r}: must be finite and >= 0")
-        for f in ("feedback", "elevator", "searching", "smooth"):
+        for f in ("feedback", "elevator", "searching", "smooth", "walk_on"):
             v = arr(f)
             if not np.all((v == 0) | (v == 1)):
                 raise ValueError(f"cpg.{f}={v.tolist()!r}: must be 0 (off) or 1 (on)")
@@ -217,7 +218,10 @@ class CPGController(Controller):
         # swings, searches or has given up; a stance leg, or a swing leg that stopped on a touchdown (sTD),
         # has its foothold. Counting feet above F_contact-z instead would stall the gait whenever the
         # statically indeterminate load leaves one stance foot lightly loaded.
-        airborne = swing * (1.0 - hold) + search + failed
+        # A leg that gave up a search (`failed`) waits at its AEP posture; unless the gait walks on (`walk_on`),
+        # it counts as airborne and as running a reflex, so it holds every other leg for good (Fig. 9c).
+        waiting = failed * (1.0 - p.walk_on)
+        airborne = swing * (1.0 - hold) + search + waiting
         atd = jnp.prod(1.0 - jnp.clip(airborne, 0.0, 1.0))
 
         elev_on, elev, offset, hold_q, q_ref = s.elev_on, s.elev, s.offset, s.hold_q, s.q_ref
@@ -251,6 +255,7 @@ class CPGController(Controller):
         z = z.at[:, 0, 1].set(y1 + to_stance * (y1_st - y1) + to_swing * (y1_sw - y1))
         z = self._reset_followers(z, rel)
         swing = swing + rel * (1.0 - 2.0 * swing)
+        failed = failed * (1.0 - rel)  # released with its group (only reached with walk_on: else ATD never comes)
         elev_on, elev = elev_on * (1.0 - to_stance), elev * (1.0 - to_stance)
         zero3 = jnp.zeros((N_LEGS, 3))
         q_new = converter_output(p, lc, z, swing, elev, zero3, zero3, searched)  # the bare converter
@@ -313,7 +318,7 @@ class CPGController(Controller):
         # (4b) "The FSM synchronizes the legs by enforcing the leg on the ground come into the Swing/Stance
         # Prolong state until the leg executing local reflex reaches the touchdown state" (Sect. 5.2):
         # while any leg runs a reflex, every stance leg freezes where it is.
-        reflex = 1.0 - jnp.prod(1.0 - jnp.clip(elev_on + search + failed, 0.0, 1.0))
+        reflex = 1.0 - jnp.prod(1.0 - jnp.clip(elev_on + search + waiting, 0.0, 1.0))
         pz = reflex * (1.0 - swing) * (1.0 - hold)
         hold_q = hold_q + pz[:, None] * (s.q_cmd - hold_q)
         hold = hold + pz * (1.0 - hold)

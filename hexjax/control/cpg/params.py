@@ -42,6 +42,10 @@ class CPGParams:
     feedback, elevator, searching, smooth (): 1 or 0, the sensory FSM and the two reflexes on or off, and the
     smooth (sigmoid) or hard (step) form of every gate (traced, so the variants of an experiment share one
     compiled program)
+    walk_on (): 1 or 0. After a search that found nothing the leg returns to its AEP posture and waits "for
+    high-level regulation" (Fig. 9c); with 0 it waits for good (the FSM holds every other leg, as the paper's
+    robot does without that regulation), with 1 the regulation is to walk on: the waiting leg no longer holds the
+    gait back, joins its group's next stance in the air and swings again from there
     """
 
     net: NetworkParams
@@ -67,6 +71,7 @@ class CPGParams:
     elevator: jax.Array
     searching: jax.Array
     smooth: jax.Array
+    walk_on: jax.Array
 
 
 @struct.dataclass
