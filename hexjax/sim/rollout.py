@@ -196,12 +196,13 @@ def rollout(robot: RobotSpec, terrain: Terrain, controller: Controller, params, 
     robot: RobotSpec; terrain: batched Terrain from `hexjax.world.terrain.sample`; controller: a
     `hexjax.control.Controller`; params: its params pytree (shared, or batched with leading axis B when
     params_batched); duration: seconds of control after settling; key: PRNG key split into one per env (initial
-    heading noise and controller init), or B keys stacked (rows that must share an env's noise, e.g. the variants
-    of a paired comparison in one batch); mesh: optional `jax.sharding.Mesh` with an axis named 'batch' to shard the envs
-    over several devices; perturbation: optional batched `hexjax.world.randomization.Perturbation` (leading axis
-    B, from `sample_perturbation`): per-env dynamics, sensing and faults, applied in every control step
-    (`hexjax.sim.perturb`; every backend: on 'c' the model fields are set in each env's MjModel). Returns a
-    `Summary` with leading axis B, or (Summary, RolloutStats) with `stats`.
+    heading noise and controller init), or B keys stacked (rows that must share an env's noise, e.g. the
+    variants of a paired comparison in one batch); mesh: optional `jax.sharding.Mesh` with an axis named 'batch'
+    to shard the envs over several devices; perturbation: optional batched
+    `hexjax.world.randomization.Perturbation` (leading axis B, from `sample_perturbation`): per-env dynamics,
+    sensing and faults, applied in every control step (`hexjax.sim.perturb`; every backend: on 'c' the model
+    fields are set in each env's MjModel). Returns a `Summary` with leading axis B, or (Summary, RolloutStats)
+    with `stats`.
     All inputs are checked on the host before anything is traced."""
     t0 = time.perf_counter()
     n_ctrl = check_static(robot, controller, duration, physics, config)
