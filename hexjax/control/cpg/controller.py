@@ -9,11 +9,11 @@ from typing import Tuple
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from hexjax.control.base import Controller
-from hexjax.control.cpg.converter import (LinearConverter, converter_output, converter_points, linear_converter,
-                                          quat_to_body, search_output)
+from hexjax.control.cpg.checks import check_params
+from hexjax.control.cpg.converter import (LinearConverter, converter_output, linear_converter, quat_to_body,
+                                          search_output)
 from hexjax.control.cpg.params import CPG_GAITS, CPGParams, CPGState, gait_fields
 from hexjax.control.gates import hard_gate, sigmoid_gate
 from hexjax.control.vdp import NetworkParams, locked_state, network_rhs, rk4_step
@@ -90,52 +90,8 @@ class CPGController(Controller):
             walk_on=jnp.asarray(0.0))
 
     def validate_params(self, p: CPGParams) -> None:
-        """Host-side checks on concrete params, before tracing; names the field and value."""
-        def arr(name):
-            obj = p
-            for part in name.split("."):
-                obj = getattr(obj, part)
-            return np.asarray(obj, dtype=float)
-
-        positive = ("net.eps", "net.b", "net.omega", "step_length", "clearance", "elevated_clearance",
-                    "body_height", "ramp_time", "search_sigma", "search_freq", "temp_force", "temp_phase",
-                    "temp_height", "raised_tolerance")
-        for f in positive:
-            v = arr(f)
-            if not np.all(np.isfinite(v)) or np.any(v <= 0):
-                raise ValueError(f"cpg.{f}={v.tolist()!r}: must be finite and > 0")
-        for f in ("net.k", "f_contact", "search_amp"):
-            v = arr(f)
-            if not np.all(np.isfinite(v)) or np.any(v < 0):
-                raise ValueError(f"cpg.{f}={v.tolist()!r}: must be finite and >= 0")
-        for f in ("feedback", "elevator", "searching", "smooth", "walk_on"):
-            v = arr(f)
-            if not np.all((v == 0) | (v == 1)):
-                raise ValueError(f"cpg.{f}={v.tolist()!r}: must be 0 (off) or 1 (on)")
-        duty = arr("duty")
-        if np.any(duty < 2):
-            raise ValueError(f"cpg.duty={duty.tolist()!r}: gait indicator gamma must be >= 2 (Eq. 16)")
-        slot = arr("leg_slot")
-        if slot.shape[-1] != N_LEGS or np.any(slot < 0) or np.any(slot > np.asarray(duty)[..., None] - 1):
-            raise ValueError(f"cpg.leg_slot={slot.tolist()!r}: six slots in [0, duty - 1]")
-        if np.any(arr("search_sigma") < 1):
-            raise ValueError(f"cpg.search_sigma={arr('search_sigma').tolist()!r}: must be >= 1 (Eq. 15)")
-        if np.any(arr("elevated_clearance") < arr("clearance")):
-            raise ValueError(f"cpg.elevated_clearance={arr('elevated_clearance').tolist()!r}: must be >= "
-                             f"clearance={arr('clearance').tolist()!r}")
-        trim = arr("lc_trim")
-        if trim.shape[-3:] != (2, 2, 3) or not np.all(np.isfinite(trim)):
-            raise ValueError(f"cpg.lc_trim shape={trim.shape!r}: must be finite with shape (2, 2, 3)")
-        # every converter point, at both clearances, must be reachable (batched params: each member)
-        cols = np.broadcast_arrays(*(arr(f) for f in ("step_length", "clearance", "elevated_clearance",
-                                                       "body_height")))
-        for sl, h, he, bh in set(zip(*(c.reshape(-1).tolist() for c in cols))):
-            for name, cl in (("clearance", h), ("elevated_clearance", he)):
-                _, ok = leg_ik(self.robot, converter_points(self.robot, sl, cl, bh, self.stance_radial))
-                if not bool(np.all(np.asarray(ok))):
-                    raise ValueError(
-                        f"cpg.step_length={sl!r}, cpg.{name}={cl!r}, cpg.body_height={bh!r}: the converter's "
-                        f"AEP/PEP/apex are out of reach of robot {self.robot.name!r}")
+        """Host-side checks on concrete params, before tracing; names the field and value (`checks.py`)."""
+        check_params(self.robot, self.stance_radial, p)
 
     # Gates ----------------------------------------------------------------------------------------
     def _gate(self, x, temp, smooth):

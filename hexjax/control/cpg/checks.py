@@ -1,0 +1,60 @@
+"""Host-side checks of the Yu 2019 CPG controller's params (`CPGParams`), run before anything is traced."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from hexjax.control.cpg.converter import converter_points
+from hexjax.control.cpg.params import CPGParams
+from hexjax.world.robot import N_LEGS, RobotSpec, leg_ik
+
+
+def check_params(robot: RobotSpec, stance_radial: float, p: CPGParams) -> None:
+    """Concrete params (shared or batched) checked field by field; one ValueError line naming the field and
+    value: positive and non-negative fields, the 0/1 switches, the gait's slots, sigma of Eq. 15, the clearances,
+    the converter trims, and every converter point within reach of `robot`'s legs."""
+    def arr(name):
+        obj = p
+        for part in name.split("."):
+            obj = getattr(obj, part)
+        return np.asarray(obj, dtype=float)
+
+    positive = ("net.eps", "net.b", "net.omega", "step_length", "clearance", "elevated_clearance",
+                "body_height", "ramp_time", "search_sigma", "search_freq", "temp_force", "temp_phase",
+                "temp_height", "raised_tolerance")
+    for f in positive:
+        v = arr(f)
+        if not np.all(np.isfinite(v)) or np.any(v <= 0):
+            raise ValueError(f"cpg.{f}={v.tolist()!r}: must be finite and > 0")
+    for f in ("net.k", "f_contact", "search_amp"):
+        v = arr(f)
+        if not np.all(np.isfinite(v)) or np.any(v < 0):
+            raise ValueError(f"cpg.{f}={v.tolist()!r}: must be finite and >= 0")
+    for f in ("feedback", "elevator", "searching", "smooth", "walk_on"):
+        v = arr(f)
+        if not np.all((v == 0) | (v == 1)):
+            raise ValueError(f"cpg.{f}={v.tolist()!r}: must be 0 (off) or 1 (on)")
+    duty = arr("duty")
+    if np.any(duty < 2):
+        raise ValueError(f"cpg.duty={duty.tolist()!r}: gait indicator gamma must be >= 2 (Eq. 16)")
+    slot = arr("leg_slot")
+    if slot.shape[-1] != N_LEGS or np.any(slot < 0) or np.any(slot > np.asarray(duty)[..., None] - 1):
+        raise ValueError(f"cpg.leg_slot={slot.tolist()!r}: six slots in [0, duty - 1]")
+    if np.any(arr("search_sigma") < 1):
+        raise ValueError(f"cpg.search_sigma={arr('search_sigma').tolist()!r}: must be >= 1 (Eq. 15)")
+    if np.any(arr("elevated_clearance") < arr("clearance")):
+        raise ValueError(f"cpg.elevated_clearance={arr('elevated_clearance').tolist()!r}: must be >= "
+                         f"clearance={arr('clearance').tolist()!r}")
+    trim = arr("lc_trim")
+    if trim.shape[-3:] != (2, 2, 3) or not np.all(np.isfinite(trim)):
+        raise ValueError(f"cpg.lc_trim shape={trim.shape!r}: must be finite with shape (2, 2, 3)")
+    # every converter point, at both clearances, must be reachable (batched params: each member)
+    cols = np.broadcast_arrays(*(arr(f) for f in ("step_length", "clearance", "elevated_clearance",
+                                                   "body_height")))
+    for sl, h, he, bh in set(zip(*(c.reshape(-1).tolist() for c in cols))):
+        for name, cl in (("clearance", h), ("elevated_clearance", he)):
+            _, ok = leg_ik(robot, converter_points(robot, sl, cl, bh, stance_radial))
+            if not bool(np.all(np.asarray(ok))):
+                raise ValueError(
+                    f"cpg.step_length={sl!r}, cpg.{name}={cl!r}, cpg.body_height={bh!r}: the converter's "
+                    f"AEP/PEP/apex are out of reach of robot {robot.name!r}")
