@@ -141,6 +141,17 @@ def _summarise(ctrl: CPGController, robot, s, terrain, kind: str, stumble_tilt: 
     return out
 
 
+def paired_rows(terrains, params_rows, batch: int, seed: int):
+    """(terrain, params, keys) of rows run in one batch: row r is envs [r * batch, (r + 1) * batch), on
+    terrains[r] (a batch of `batch`) with params_rows[r]; env i of every row gets the same key (heading draw and
+    controller key, from `seed` + 1), so rows on the same terrains are paired env for env."""
+    terrain = jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs), *terrains)
+    params = jax.tree_util.tree_map(lambda *xs: jnp.repeat(jnp.stack([jnp.asarray(x) for x in xs]), batch, 0),
+                                    *params_rows)
+    keys = jnp.tile(jax.random.split(jax.random.PRNGKey(seed + 1), batch), (len(params_rows), 1))
+    return terrain, params, keys
+
+
 def run_experiment(name: str, batch: int = 32, seed: int = 0, duration: Optional[float] = None,
                    record: bool = True, progress: bool = True, preset: Optional[Mapping] = None,
                    params: Optional[Mapping] = None, physics="validated") -> Dict:
@@ -176,7 +187,6 @@ def run_experiment(name: str, batch: int = 32, seed: int = 0, duration: Optional
     # every row in one batch (the variants are params, the terrains share a shape): the GPU steps the rows
     # together instead of one small batch after another. Row r holds envs [r * batch, (r + 1) * batch); an
     # env's terrain and its heading noise and controller key are the same in every variant (paired rows).
-    env_keys = jax.random.split(jax.random.PRNGKey(seed + 1), batch)
     groups = {}  # terrain shapes -> row indices (presets of one kind share one)
     for i, (t, _, _) in enumerate(rows):
         shapes = tuple(np.shape(a) for a in jax.tree_util.tree_leaves(sampled[t]))
@@ -184,14 +194,11 @@ def run_experiment(name: str, batch: int = 32, seed: int = 0, duration: Optional
     summaries = {}
     bar = tqdm(total=len(rows), desc=name, disable=not progress)
     for idx in groups.values():
-        cat = lambda *xs: jnp.concatenate(xs)
-        terrain = jax.tree_util.tree_map(cat, *[sampled[rows[i][0]] for i in idx])
         params_rows = [with_values(ctrl.default_params(**{k: float(v) for k, v in rows[i][2].items()}), params or {})
                        for i in idx]
-        p = jax.tree_util.tree_map(lambda *xs: jnp.repeat(jnp.stack([jnp.asarray(x) for x in xs]), batch, 0),
-                                   *params_rows)
+        terrain, p, keys = paired_rows([sampled[rows[i][0]] for i in idx], params_rows, batch, seed)
         bar.set_postfix_str(", ".join(f"{rows[i][0]} / {rows[i][1]}" for i in idx))
-        s, st = rollout(robot, terrain, ctrl, p, dur, jnp.tile(env_keys, (len(idx), 1)),
+        s, st = rollout(robot, terrain, ctrl, p, dur, keys,
                         physics=shared_config(preset, [specs[rows[i][0]] for i in idx]), backend=backend,
                         # the step's success and the ditch floor read the foot traces
                         config=RolloutConfig(record=True),

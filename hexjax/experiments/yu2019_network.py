@@ -22,6 +22,7 @@ import numpy as np
 
 from hexjax.control.cpg import CPG_GAITS, MODE_NAMES, CPGController, gait_fields
 from hexjax.control.vdp import NetworkParams, integrate, phase_amplitude
+from hexjax.experiments.yu2019 import paired_rows
 from hexjax.sim.config import RolloutConfig
 from hexjax.sim.physics import get_physics, traced_backend
 from hexjax.sim.rollout import rollout
@@ -60,12 +61,10 @@ def gait_walk(gaits, batch: int, seed: int, duration: float, physics) -> Dict:
     preset = get_physics(physics)
     backend = traced_backend(preset, "controller traces (the legs' swing/stance modes)")
     spec = get_terrain("flat")
-    terrain = sample(spec, jax.random.PRNGKey(seed), batch)
-    terrain = jax.tree_util.tree_map(lambda a: jnp.concatenate([a] * len(gaits)), terrain)
+    flat = sample(spec, jax.random.PRNGKey(seed), batch)
     ctrl = CPGController(robot)
     rows = [ctrl.default_params(**gait_fields(g)) for g in gaits]
-    params = jax.tree_util.tree_map(lambda *xs: jnp.repeat(jnp.stack([jnp.asarray(x) for x in xs]), batch, 0), *rows)
-    keys = jnp.tile(jax.random.split(jax.random.PRNGKey(seed + 1), batch), (len(gaits), 1))
+    terrain, params, keys = paired_rows([flat] * len(gaits), rows, batch, seed)
     t0 = time.perf_counter()
     s, st = rollout(robot, terrain, ctrl, params, duration, keys, physics=preset.config(spec), backend=backend,
                     config=RolloutConfig(record=True), params_batched=True, stats=True)
