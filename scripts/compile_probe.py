@@ -34,7 +34,7 @@ from jax.flatten_util import ravel_pytree
 
 from hexjax import cache
 from hexjax.experiments.bench_grad import best_call, objective_program, physics_steps
-from hexjax.sim.model import mjx, swapped
+from hexjax.sim.mjx_rules import mjx, swapped
 from hexjax.tune.config import BACKWARDS, load_tune_config
 from hexjax.tune.objective import Problem
 

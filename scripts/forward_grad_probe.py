@@ -17,7 +17,7 @@ with H = M + J^T diag(D active) J. The forces' tangents follow from MJX's constr
 dC/dtheta d theta from the linearisation and dC/da d a = -D active J d a on the rows (pyramidal cone).
 `RolloutConfig.grad_clip` bounds a cotangent and has no forward-mode counterpart, so the forward rows take the
 exact windowed gradient; the reverse row (`rev`) is the tuner's, with the config's `grad_clip`. Every gradient
-program is traced under `hexjax.sim.model.integrator_rule` (the implicit integrator's linear solve differentiated
+program is traced under `hexjax.sim.mjx_rules.integrator_rule` (the implicit integrator's linear solve differentiated
 as a solve, not through its Cholesky factor); `--no-integrator-rule` traces them without it, for the A/B.
 
 Prints one JSON line per program (compile s, best call s, env-steps/s, the gradient) and the share of the
@@ -54,7 +54,7 @@ from mujoco.mjx._src import constraint, solver, support
 from hexjax.experiments.bench_grad import _time, objective_program, physics_steps
 from hexjax.sim import forward_mode as fm
 from hexjax.sim import implicit, rollout
-from hexjax.sim.model import swapped
+from hexjax.sim.mjx_rules import swapped
 from hexjax.sim.rollout import rollout_function
 from hexjax.tune.config import load_tune_config
 from hexjax.tune.objective import Problem, per_env_objective
@@ -177,7 +177,7 @@ def main():
     ap.add_argument("--duration", type=float, default=None, help="walk s instead of the config's")
     ap.add_argument("--no-integrator-rule", action="store_true",
                     help="trace every program with JAX's own derivative of the implicit integrator's Cholesky solve "
-                         "(hexjax.sim.model.integrator_rule replaced by a no-op): the rule's A/B")
+                         "(hexjax.sim.mjx_rules.integrator_rule replaced by a no-op): the rule's A/B")
     ap.add_argument("--json", default="")
     a = ap.parse_args()
     modes = a.modes.split(",")

@@ -112,7 +112,7 @@ class RolloutConfig:
     #   'none'      MJX's lax.while_loop, which JAX cannot reverse: gradients need physics.iterations == 1
     #               (one unconverged Newton step makes the rollout non-smooth in the params: central
     #               differences flip sign with the step size; tests/test_tune.py)
-    #   'unrolled'  the Newton iterations traced as a fixed-length scan (`hexjax.sim.model.reversible_solver`)
+    #   'unrolled'  the Newton iterations traced as a fixed-length scan (`hexjax.sim.mjx_rules.reversible_solver`)
     #               and differentiated step by step: the reference
     #   'implicit'  the implicit function theorem at the solution (`hexjax.sim.implicit`): one linear solve
     #               with the Newton Hessian per physics step in the backward pass; exact where the solver

@@ -41,7 +41,7 @@ from mujoco.mjx._src import math as mjx_math
 from mujoco.mjx._src.types import ConeType, ConstraintType, DisableBit, JointType, SolverType
 
 from hexjax.sim import implicit
-from hexjax.sim.model import swapped
+from hexjax.sim.mjx_rules import swapped
 
 _MJX_PYRAMIDAL = constraint._efc_contact_pyramidal  # MJX's own, whatever is patched in later
 

@@ -25,7 +25,8 @@ from hexjax.sim.compiled import Compiled
 from hexjax.sim.config import PhysicsConfig, RolloutConfig, SensorConfig
 from hexjax.sim.forward_mode import check_model, forward_solver
 from hexjax.sim.implicit import REMAT_POLICY, implicit_solver
-from hexjax.sim.model import integrator_rule, reversible_solver, rotation_rule, sim_model
+from hexjax.sim.model import sim_model
+from hexjax.sim.mjx_rules import integrator_rule, reversible_solver, rotation_rule
 from hexjax.sim.step import (Summary, control_steps, end_pose, make_control_step, make_env_start, settle_steps,
                              total_physics_steps)
 from hexjax.world.robot import RobotSpec
@@ -146,7 +147,7 @@ def solver_context(cfg: RolloutConfig, physics: PhysicsConfig):
     """The context under which MJX's constraint solve is traced as `cfg.solver_grad` says: its Newton iterations
     as a scan ('unrolled'), implicit differentiation ('implicit'), or MJX's own while loop ('none'). The first
     two, which reverse mode goes through, also trace MJX's rotation matrices and its implicit integrator's linear
-    solve with cheaper derivatives (`hexjax.sim.model.rotation_rule`, `integrator_rule`; same values);
+    solve with cheaper derivatives (`hexjax.sim.mjx_rules.rotation_rule`, `integrator_rule`; same values);
     forward-only rollouts ('none') are traced as MJX writes them. With `cfg.grad_mode='forward'` the solve takes
     forward mode's rule instead (`hexjax.sim.forward_mode.forward_solver`)."""
     if cfg.solver_grad == "none":
