@@ -138,12 +138,14 @@ def test_own_robot_and_terrain_files_work_in_the_cli(tmp_path, capsys):
 
 def test_the_cpg_gradient_recipe_preset_is_cpg_step_ditch_with_the_recipe():
     """configs/tune/cpg_step_ditch_grad.yaml says it is cpg_step_ditch with the gradient recipe of docs/tuning.md;
-    the two stay one config but for those keys (a change to the base that the copy misses fails here)."""
+    the two stay one config but for those keys and the training solver (a change to the base that the copy misses fails here)."""
     import dataclasses
 
     from hexjax.tune.config import load_tune_config
 
     recipe = {"gates": "straight_through", "window": 2.0, "grad_clip": 10.0, "backward": "parallel", "steps": 16,
-              "eval_every": 2, "optimizer": {"name": "sgd", "learning_rate": 0.2, "decay_to": 0.1}}
+              "eval_every": 2, "optimizer": {"name": "sgd", "learning_rate": 0.2, "decay_to": 0.1},
+              # gradients train on the pyramidal cone the implicit gradient needs, CMA-ES on validated
+              "train_physics": None, "solver_iterations": 4, "solver_grad": "implicit"}
     assert dataclasses.asdict(load_tune_config("cpg_step_ditch_grad")) == \
         dataclasses.asdict(load_tune_config("cpg_step_ditch", recipe, merge=True))

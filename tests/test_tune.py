@@ -232,10 +232,26 @@ def test_cli_tune_rejects_bad_configs(capsys):
                       (["optimizer.average=1"], "tune.optimizer.average=1"),
                       (["backward=sideways"], "tune.backward='sideways'"),
                       (["backward=parallel", "estimator=hybrid"], "tune.backward='parallel' with tune.estimator"),
+                      (["train_physics=validated", "solver_iterations=4"], "give one or the other"),
+                      (["train_physics=reference"], "training rollouts are MJX programs"),
                       (["steps"], "use key=value")):
         rc = main(["tune", "--config", "tactile_tripod"] + sum([["--set", s] for s in sets], []))
         assert rc == 2
         assert msg in capsys.readouterr().err
+
+
+def test_train_physics_sets_the_training_solver():
+    """`train_physics: validated` trains on validated's solver (elliptic cone, 8 iterations) instead of the default
+    one; the implicit gradient, which needs the pyramidal cone, is refused before anything is traced."""
+    from hexjax.tune.grad import tune as tune_grad
+    from hexjax.tune.objective import Problem
+    default = Problem.build(_small_config()).physics()
+    assert (default.cone, default.iterations) == ("pyramidal", 2)
+    cfg = _small_config(train_physics="validated")
+    got = Problem.build(cfg).physics()
+    assert (got.cone, got.iterations, got.ls_iterations) == ("elliptic", 8, 8)
+    with pytest.raises(ValueError, match="elliptic cone has no implicit gradient"):
+        tune_grad(_small_config(train_physics="validated", solver_grad="implicit"), "/nonexistent", progress=False)
 
 
 def test_es_baseline_improves_and_is_deterministic(tmp_path):

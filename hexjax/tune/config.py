@@ -47,6 +47,10 @@ class TuneConfig:
     # MJX Newton iterations of both the training and the evaluation physics (None: PhysicsConfig's 2). The
     # CPG on `yu2019` needs 4 for gradients that agree with finite differences (docs/tuning.md)
     solver_iterations: Optional[int] = None
+    # a physics preset (name or .yaml, on MJX) for the training rollouts instead of the terrain's default physics
+    # with `solver_iterations`: `validated` tunes on the physics the results are reported on (CMA-ES's hard
+    # objective; the implicit gradient needs a pyramidal-cone preset)
+    train_physics: Optional[str] = None
     # the physics preset the held-out and validation evaluations run (docs/physics.md): the figures a tuning
     # reports are judged on it, whatever physics the training rollouts take (an MJX preset: mjx or warp)
     eval_physics: str = "validated"
@@ -129,6 +133,13 @@ class TuneConfig:
         if it is not None and not (isinstance(it, int) and not isinstance(it, bool) and 1 <= it <= 32):
             raise ValueError(f"tune.solver_iterations={it!r}: must be None or an integer in [1, 32]")
         from hexjax.sim.physics import get_physics
+        if self.train_physics is not None:
+            if it is not None:
+                raise ValueError(f"tune.train_physics={self.train_physics!r} with tune.solver_iterations={it!r}: "
+                                 "the preset sets the solver; give one or the other")
+            if get_physics(self.train_physics).backend == "c":
+                raise ValueError(f"tune.train_physics={self.train_physics!r}: training rollouts are MJX programs; "
+                                 "give a preset on mjx (validated, fast or a .yaml of one's own)")
         if get_physics(self.eval_physics).backend == "c":
             raise ValueError(f"tune.eval_physics={self.eval_physics!r}: the evaluation is a kept MJX program; give a "
                              "preset on mjx (validated, fast or a .yaml of one's own)")

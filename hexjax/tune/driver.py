@@ -67,6 +67,8 @@ def config_digest(cfg: TuneConfig, method: str, also_drop: tuple = ()) -> str:
     # never extended with evaluations on other physics
     if cfg.eval_physics == "fast":
         drop.append("eval_physics")
+    if cfg.train_physics is None:  # digests from before the key hold
+        drop.append("train_physics")
     for k in drop:
         d.pop(k)
     for k in also_drop:

@@ -176,7 +176,10 @@ class Problem:
     def physics(self) -> PhysicsConfig:
         """The training rollouts' physics (and CMA-ES's hard objective's): the terrain's, with `solver_iterations`
         Newton iterations where the config sets them (MJX's pyramidal cone, which the implicit gradient needs).
-        The reported figures are judged on `eval_physics()`."""
+        The reported figures are judged on `eval_physics()`. With `train_physics` set: that preset's solver."""
+        if self.cfg.train_physics is not None:
+            from hexjax.sim.physics import get_physics, shared_config
+            return shared_config(get_physics(self.cfg.train_physics), self.specs)
         base = PhysicsConfig()
         if self.cfg.solver_iterations is not None:
             base = dataclasses.replace(base, iterations=self.cfg.solver_iterations)
