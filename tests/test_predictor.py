@@ -48,7 +48,8 @@ def test_lstm_learns_beats_baseline_and_round_trips(tmp_path):
                                atol=1e-6)
     # dataset file round trip
     dpath = tmp_path / "d.npz"
-    ds.save_dataset(str(dpath), data, {"source": "test"})
+    ds.save_dataset(str(dpath), data, {"source": "test", "physics": {"name": "validated"}})
+    assert ds.dataset_meta(str(dpath))["physics"] == {"name": "validated"}
     back = ds.load_dataset(str(dpath))
     np.testing.assert_array_equal(back["X"], data["X"])
     assert list(back["category"][:2]) == ["low-small", "low-small"]

@@ -81,6 +81,12 @@ def save_dataset(path: str, data: Dict[str, np.ndarray], meta: Dict) -> None:
     np.savez_compressed(path, meta=json.dumps(meta), **data)
 
 
+def dataset_meta(path: str) -> Dict:
+    """What `save_dataset` recorded about how a dataset was made (its physics among it); {} if nothing."""
+    with np.load(path, allow_pickle=False) as f:
+        return json.loads(str(f["meta"])) if "meta" in f.files else {}
+
+
 def load_dataset(path: str) -> Dict[str, np.ndarray]:
     if not os.path.isfile(path):
         raise ValueError(f"dataset {path!r} not found: make one with `hexjax experiment luneckas2020-dataset --out {path}`")

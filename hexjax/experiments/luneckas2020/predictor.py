@@ -32,7 +32,8 @@ from flax import serialization
 from tqdm.auto import tqdm
 
 from hexjax.experiments.luneckas2020 import error_model as em
-from hexjax.experiments.luneckas2020.dataset import FEATURES, concat_datasets, load_dataset, split_by_terrain
+from hexjax.experiments.luneckas2020.dataset import (FEATURES, concat_datasets, dataset_meta, load_dataset,
+                                                     split_by_terrain)
 
 
 # Model -------------------------------------------------------------------------------------------
@@ -224,7 +225,10 @@ def run_training(paths: Sequence[str], out: str, cfg: TrainConfig = TrainConfig(
     save_predictor(out, params, norm, cfg)
     params2, norm2, cfg2 = load_predictor(out)
     fits = fit_analytic(data, train)
-    res = {"datasets": list(paths), "train_sequences": int(train.sum()), "held_out_sequences": int(held.sum()),
+    # each dataset's physics (older datasets recorded none): the walks the figures below come from
+    res = {"datasets": list(paths),
+           "physics": {p: dataset_meta(p).get("physics", "not recorded") for p in paths},
+           "train_sequences": int(train.sum()), "held_out_sequences": int(held.sum()),
            "train_s": round(train_s, 1), "config": dataclasses.asdict(cfg), "loss_history": hist,
            "analytic_dL_cm": {f"{g}/{'with' if m else 'without'}": round(100 * v[0], 3) for (g, m), v in fits.items()},
            "held_out": evaluate_predictor(params2, norm2, cfg2, data, held, fits),
