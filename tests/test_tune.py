@@ -254,6 +254,19 @@ def test_train_physics_sets_the_training_solver():
         tune_grad(_small_config(train_physics="validated", solver_grad="implicit"), "/nonexistent", progress=False)
 
 
+def test_held_out_figures_per_terrain_family_follow_the_batch_layout():
+    """`family_slices` names the envs of each terrain family as `Problem.terrain_batch` lays them out: on a
+    flat + low-small batch of 5, the first 3 envs are flat (no box top above the ground) and the last 2 have boxes."""
+    from hexjax.tune.objective import Problem, family_slices
+    assert [(s.start, s.stop) for s in family_slices(12, 5)] == [(0, 3), (3, 6), (6, 8), (8, 10), (10, 12)]
+    problem = Problem.build(_small_config(terrain=["flat", "low-small"]))
+    terrain = problem.terrain_batch(jax.random.PRNGKey(0), 5)
+    top = np.asarray(terrain.box_pos)[..., 2] + np.asarray(terrain.box_half)[..., 2]
+    tall = (top > np.asarray(terrain.ground_z)[:, None] + 0.005).any(-1)  # a box standing above the ground
+    flat, boxes = family_slices(5, 2)
+    assert not tall[flat].any() and tall[boxes].all(), tall
+
+
 def test_es_baseline_improves_and_is_deterministic(tmp_path):
     """CMA-ES on an objective with a clear way down: the goal error plus 0.05 per joule, the step height
     among the tuned params (a lower swing costs less energy). In 3 generations of 4 x 2 rollouts the mean

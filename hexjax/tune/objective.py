@@ -302,7 +302,22 @@ def evaluate_held_out(problem: Problem, u, fn=None, model=None, which: str = "he
     j = np.asarray(per_env_objective(s, problem.cfg.distance, problem.cfg.objective))
     dx, dy, da = (np.asarray(x) for x in travel_errors(s, problem.cfg.distance))
     err = np.hypot(dx, dy)
-    return {"objective": float(j.mean()), "goal_error_cm": 100 * float(err.mean()),
-            "rel_error_pct": 100 * float(err.mean()) / problem.cfg.distance, "dx_cm": 100 * float(dx.mean()),
-            "dy_cm": 100 * float(dy.mean()), "abs_dalpha_deg": math.degrees(float(np.abs(da).mean())),
-            "fall_pct": 100 * float(np.asarray(s.fell).mean()), "nan_envs": int(np.asarray(s.nan).sum())}
+    fell = np.asarray(s.fell)
+    out = {"objective": float(j.mean()), "goal_error_cm": 100 * float(err.mean()),
+           "rel_error_pct": 100 * float(err.mean()) / problem.cfg.distance, "dx_cm": 100 * float(dx.mean()),
+           "dy_cm": 100 * float(dy.mean()), "abs_dalpha_deg": math.degrees(float(np.abs(da).mean())),
+           "fall_pct": 100 * float(fell.mean()), "nan_envs": int(np.asarray(s.nan).sum())}
+    if len(problem.specs) > 1:  # the batch is split among the terrain families in blocks (`terrain_batch`)
+        out["by_terrain"] = {name: {"n": int(sl.stop - sl.start), "objective": float(j[sl].mean()),
+                                    "goal_error_cm": 100 * float(err[sl].mean()),
+                                    "fall_pct": 100 * float(fell[sl].mean())}
+                             for name, sl in zip(problem.cfg.terrains, family_slices(len(j), len(problem.specs)))}
+    return out
+
+
+def family_slices(n: int, k: int):
+    """The env slices of k terrain families in a batch of n, as `Problem.terrain_batch` lays them out (the
+    first n % k families one env more)."""
+    sizes = [n // k + (i < n % k) for i in range(k)]
+    ends = np.cumsum(sizes)
+    return [slice(int(e - z), int(e)) for e, z in zip(ends, sizes)]
