@@ -228,7 +228,8 @@ def write_params_preset(res: Dict[str, Any], path: str) -> None:
 
     cfg = res["config"]
     doc = {"controller": cfg["controller"], "gait": cfg["gait"],
-           "made_by": {"method": res["method"], "terrain": cfg["terrain"], "eval_physics": cfg.get("eval_physics"),
+           "made_by": {"method": res["method"], "terrain": cfg["terrain"], "train_physics": cfg.get("train_physics"),
+                       "eval_physics": cfg.get("eval_physics"), "held_out_batch": cfg["held_out_batch"],
                        "step": res["final"]["step"], "rollouts": res["final"]["rollouts"],
                        "held_out_objective": float(res["final"]["held_out"]["objective"]),
                        "start_held_out_objective": float(res["start"]["held_out"]["objective"])},
