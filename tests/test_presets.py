@@ -149,3 +149,28 @@ def test_the_cpg_gradient_recipe_preset_is_cpg_step_ditch_with_the_recipe():
               "train_physics": None, "solver_iterations": 4, "solver_grad": "implicit"}
     assert dataclasses.asdict(load_tune_config("cpg_step_ditch_grad")) == \
         dataclasses.asdict(load_tune_config("cpg_step_ditch", recipe, merge=True))
+
+
+def test_shipped_params_presets_load_by_name_into_their_controller():
+    """Every configs/params/*.yaml (tuned params, `hexjax tune`'s params.yaml) loads by name and sets its
+    controller's params to its values; each says how it was judged (held-out objective on validated physics)."""
+    import numpy as np
+
+    from hexjax.control.cpg import CPGController
+    from hexjax.control.tactile import TactileGaitController
+    from hexjax.tune.space import load_values, with_values
+
+    names = preset_names("params")
+    assert names, "no params preset shipped"
+    for name in names:
+        doc = read_yaml(resolve("params", name))
+        if doc["controller"] == "tactile":
+            p0 = TactileGaitController(get_robot("luneckas2020"), gait=doc["gait"]).default_params()
+        else:
+            p0 = CPGController(get_robot("yu2019"), gait=doc["gait"]).default_params()
+        p = with_values(p0, load_values(name))
+        for k, v in doc["values"].items():
+            np.testing.assert_allclose(np.asarray(getattr(p, k)), np.asarray(v, np.float32), rtol=1e-6, err_msg=name)
+        made = doc["made_by"]
+        assert made["eval_physics"] == "validated", name
+        assert made["held_out_objective"] <= made["start_held_out_objective"], name
