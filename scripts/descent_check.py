@@ -6,10 +6,9 @@ rollout) on the held-out and the validation terrains at u0 - a g / max|g| for ea
 (negative a: up the gradient). A descent direction lowers both as a grows; docs/tuning.md ("Straight-through
 gates") has the measurements that chose the CPG preset's window with it.
 
-    python scripts/descent_check.py --config cpg_step_ditch --set gates=straight_through --set window=2.0 \
-        --set grad_clip=10 --json docs/results/descent_cpg_st_w2.json
+    python scripts/descent_check.py --config cpg_step_ditch_grad --json docs/results/descent_cpg_st_w2.json
 
-(`grad_clip=10`: the recorded JSON was taken when the bound per env was grad_clip x train_batch.)
+(cpg_step_ditch_grad: straight-through gates, 2 s windows, the 4-iteration solver its gradient needs.)
 """
 
 from __future__ import annotations
@@ -30,7 +29,7 @@ from hexjax.tune.objective import Problem, evaluate_held_out
 
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--config", default="cpg_step_ditch", help="tuning config (configs/tune/) or .yaml path")
+    ap.add_argument("--config", default="cpg_step_ditch_grad", help="tuning config (configs/tune/) or .yaml path")
     ap.add_argument("--set", action="append", default=[], help="override a config key, e.g. window=2.0 or optimizer.name=sgd")
     ap.add_argument("--batches", type=int, default=3, help="training batches whose gradients are averaged")
     ap.add_argument("--steps", default="0,0.05,0.1,0.2,-0.1", help="steps a along -g / max|g| (comma list)")

@@ -173,7 +173,7 @@ def test_runs_that_differ_only_outside_the_program_share_its_kept_copy():
     outside = {"seed": 1, "steps": 7, "eval_every": 3, "held_out_batch": 9, "validation_batch": 0,
                "optimizer": {"name": "sgd", "learning_rate": 0.2, "average": 0.7}, "es_sigma": 0.3}
     inside = {"window": 1.0, "grad_clip": 3.0, "gates": "straight_through", "train_batch": 12, "distance": 0.5,
-              "solver_iterations": 5, "objective": {"dx": 1.0}, "terrain": ["step40", "ditch40"], "es_population": 4,
+              "train_physics": "fast", "objective": {"dx": 1.0}, "terrain": ["step40", "ditch40"], "es_population": 4,
               "estimator": "hybrid", "es_objective": "smooth"}
     for method in ("grad", "es8"):
         for k, v in outside.items():
