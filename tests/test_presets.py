@@ -138,7 +138,8 @@ def test_own_robot_and_terrain_files_work_in_the_cli(tmp_path, capsys):
 
 def test_the_cpg_gradient_recipe_preset_is_cpg_step_ditch_with_the_recipe():
     """configs/tune/cpg_step_ditch_grad.yaml says it is cpg_step_ditch with the gradient recipe of docs/tuning.md;
-    the two stay one config but for those keys and the training solver (a change to the base that the copy misses fails here)."""
+    the two stay one config but for those keys and the training solver (a change to the base that the copy
+    misses fails here)."""
     import dataclasses
 
     from hexjax.tune.config import load_tune_config
