@@ -89,7 +89,7 @@ def test_tune_config_file_and_its_errors(tmp_path):
 
 def test_every_shipped_tune_config_builds():
     """Each configs/tune/*.yaml validates, its start lies inside its bounds, and its physics is the one it
-    asks for (the CPG config's 4 solver iterations reach both the training and the held-out rollouts)."""
+    asks for (the CPG config's 4 solver iterations or cpg_step_ditch's validated preset reach the training rollouts)."""
     from hexjax.tune.config import load_tune_config
     from hexjax.tune.objective import Problem
     from hexjax.world.files import preset_names
@@ -99,7 +99,13 @@ def test_every_shipped_tune_config_builds():
         cfg = load_tune_config(path)
         problem = Problem.build(cfg)
         problem.space.init(problem.params0)
-        assert problem.physics().iterations == (cfg.solver_iterations or 2), path
+        if cfg.train_physics is None:
+            assert problem.physics().iterations == (cfg.solver_iterations or 2), path
+        else:  # a preset's solver (cpg_step_ditch trains on validated: 8 iterations, the elliptic cone)
+            from hexjax.sim.physics import get_physics
+            want = get_physics(cfg.train_physics)
+            got = problem.physics()
+            assert (got.iterations, got.cone) == (want.iterations, want.cone), path
     cpg = Problem.build(load_tune_config("cpg_tripod"))
     assert cpg.robot.name == "yu2019" and cpg.physics().iterations == 4
     assert float(cpg.params0.temp_force) == 1.0  # the controller's own temperatures when the config sets none
