@@ -160,7 +160,8 @@ def run_experiment(name: str, batch: int = 32, seed: int = 0, duration: Optional
     e.g. a tuned result) replaces the paper's numbers in every variant; `physics`: the physics preset (name,
     .yaml path or `PhysicsPreset`; on MJX: a step's success reads the foot traces). Returns {"config",
     "results": {terrain: {variant: metrics}}, "comparisons", "_records"}; `comparisons` holds, per terrain,
-    each variant less each later one on the same envs (paired 95 % intervals); `_records` (with `record`) holds numpy traces of one env per row for plotting and is not JSON."""
+    each variant less each later one on the same envs (paired 95 % intervals); `_records` (with `record`) holds
+    numpy traces of one env per row for plotting and is not JSON."""
     ex = dict(preset if preset is not None else experiment(name).preset)
     if not isinstance(batch, int) or batch < 1:
         raise ValueError(f"batch={batch!r}: must be an integer >= 1")
@@ -230,17 +231,18 @@ def _comparisons(results: Dict) -> Dict:
     paired differences in percentage points of success and falls (the same terrains and draws)."""
     out = {}
     for t, vs in results.items():
+        pts = {}  # variant -> {metric: per-env 0 / 100}
+        for v, r in vs.items():
+            crossed, fell = np.asarray(r["per_env"]["crossed"], bool), np.asarray(r["per_env"]["fell"], bool)
+            pts[v] = {"success_pts": 100.0 * (crossed & ~fell), "fall_pts": 100.0 * fell}
         names = list(vs)
-        for i, a_name in enumerate(names):
-            for v in names[i + 1:]:
-                ref, other = vs[a_name]["per_env"], vs[v]["per_env"]
+        for i, a in enumerate(names):
+            for b in names[i + 1:]:
                 row = {}
-                for key, field in (("success_pts", None), ("fall_pts", "fell")):
-                    a = [c and not f for c, f in zip(ref["crossed"], ref["fell"])] if field is None else ref[field]
-                    b = [c and not f for c, f in zip(other["crossed"], other["fell"])] if field is None else other[field]
-                    m, (lo, hi) = paired(100 * np.asarray(a, float), 100 * np.asarray(b, float))
+                for key in ("success_pts", "fall_pts"):
+                    m, (lo, hi) = paired(pts[a][key], pts[b][key])
                     row[key] = [round(m, 2), round(lo, 2), round(hi, 2)]
-                out.setdefault(t, {})[f"{a_name} - {v}"] = row
+                out.setdefault(t, {})[f"{a} - {b}"] = row
     return out
 
 

@@ -111,9 +111,8 @@ class Problem:
         m = max(s.max_boxes for s in self.specs)
         if len(self.specs) == 1:
             return pad_terrain(sample(self.specs[0], key, n), m)
-        k = len(self.specs)
-        parts = [pad_terrain(sample(s, jax.random.fold_in(key, i), n // k + (i < n % k)), m)
-                 for i, s in enumerate(self.specs)]
+        parts = [pad_terrain(sample(s, jax.random.fold_in(key, i), sl.stop - sl.start), m)
+                 for i, (s, sl) in enumerate(zip(self.specs, family_slices(n, len(self.specs))))]
         return jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs), *parts)
 
     def train_batch(self, step: int, n: Optional[int] = None):
@@ -170,16 +169,19 @@ class Problem:
     def eval_physics(self) -> PhysicsConfig:
         """The held-out and validation evaluations' physics: the `eval_physics` preset (default `validated`) on
         the training terrains' kinds and slot counts, so what a tuning reports is converged physics."""
+        return self._preset_physics(self.cfg.eval_physics)
+
+    def _preset_physics(self, name: str) -> PhysicsConfig:
+        """A physics preset's solver on the config's terrain kinds and slot counts."""
         from hexjax.sim.physics import get_physics, shared_config
-        return shared_config(get_physics(self.cfg.eval_physics), self.specs)
+        return shared_config(get_physics(name), self.specs)
 
     def physics(self) -> PhysicsConfig:
         """The training rollouts' physics (and CMA-ES's hard objective's): the terrain's, with `solver_iterations`
         Newton iterations where the config sets them (MJX's pyramidal cone, which the implicit gradient needs).
         The reported figures are judged on `eval_physics()`. With `train_physics` set: that preset's solver."""
         if self.cfg.train_physics is not None:
-            from hexjax.sim.physics import get_physics, shared_config
-            return shared_config(get_physics(self.cfg.train_physics), self.specs)
+            return self._preset_physics(self.cfg.train_physics)
         base = PhysicsConfig()
         if self.cfg.solver_iterations is not None:
             base = dataclasses.replace(base, iterations=self.cfg.solver_iterations)
