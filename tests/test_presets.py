@@ -136,20 +136,51 @@ def test_own_robot_and_terrain_files_work_in_the_cli(tmp_path, capsys):
     assert "bad.yaml: robot.kp=-1.0: must be a finite number > 0" in err and err.count("\n") == 1
 
 
-def test_the_cpg_gradient_recipe_preset_is_cpg_step_ditch_with_the_recipe():
-    """configs/tune/cpg_step_ditch_grad.yaml says it is cpg_step_ditch with the gradient recipe of docs/tuning.md;
-    the two stay one config but for those keys and the training solver (a change to the base that the copy
-    misses fails here)."""
+# derived tuning configs: each is its base config but for the keys named here (a change to the base that a copy
+# misses fails the test below)
+DERIVED_TUNE_CONFIGS = {
+    # the gradient recipe of docs/tuning.md; gradients train on the pyramidal cone the implicit gradient needs
+    "cpg_step_ditch_grad": ("cpg_step_ditch", {
+        "gates": "straight_through", "window": 2.0, "grad_clip": 10.0, "backward": "parallel", "steps": 16,
+        "eval_every": 2, "optimizer": {"name": "sgd", "learning_rate": 0.2, "decay_to": 0.1},
+        "train_physics": None, "solver_iterations": 4, "solver_grad": "implicit"}),
+    # the runs that made the shipped params presets of the same names (docs/results.md, "Tuned presets")
+    "cpg_step_ditch_gpu": ("cpg_step_ditch", {
+        "train_batch": 128, "held_out_batch": 320, "validation_batch": 160, "steps": 64, "eval_every": 64}),
+    "tactile_tripod_es": ("tactile_tripod", {
+        "train_physics": "validated", "held_out_batch": 64, "validation_batch": 32, "steps": 48, "eval_every": 48}),
+    "tactile_tripod_forward": ("tactile_tripod", {"backward": "forward", "solver_grad": "implicit", "grad_clip": None}),
+}
+
+
+@pytest.mark.parametrize("name", sorted(DERIVED_TUNE_CONFIGS))
+def test_derived_tune_configs_are_their_base_with_the_named_keys(name):
     import dataclasses
 
     from hexjax.tune.config import load_tune_config
 
-    recipe = {"gates": "straight_through", "window": 2.0, "grad_clip": 10.0, "backward": "parallel", "steps": 16,
-              "eval_every": 2, "optimizer": {"name": "sgd", "learning_rate": 0.2, "decay_to": 0.1},
-              # gradients train on the pyramidal cone the implicit gradient needs, CMA-ES on validated
-              "train_physics": None, "solver_iterations": 4, "solver_grad": "implicit"}
-    assert dataclasses.asdict(load_tune_config("cpg_step_ditch_grad")) == \
-        dataclasses.asdict(load_tune_config("cpg_step_ditch", recipe, merge=True))
+    base, keys = DERIVED_TUNE_CONFIGS[name]
+    assert dataclasses.asdict(load_tune_config(name)) == dataclasses.asdict(load_tune_config(base, keys, merge=True))
+
+
+@pytest.mark.parametrize("config, preset", [("cpg_step_ditch_gpu", "cpg_step_ditch_es"),
+                                            ("tactile_tripod_es", "tactile_tripod_es")])
+def test_a_shipped_es_preset_records_the_run_of_its_config(config, preset):
+    """The preset's `made_by` matches its config's CMA-ES run (held-out batch, rollout budget, training
+    physics), and that config continues the same checkpoint as a run given its budget by flags (the digest
+    leaves out the step count and the evaluation period)."""
+    import dataclasses
+
+    from hexjax.tune.config import load_tune_config
+    from hexjax.tune.driver import config_digest
+
+    cfg = load_tune_config(config)
+    made = read_yaml(resolve("params", preset))["made_by"]
+    assert made["held_out_batch"] == cfg.held_out_batch
+    assert made["rollouts"] == cfg.steps * cfg.train_batch
+    assert made["train_physics"] == cfg.train_physics
+    method = f"es{cfg.es_population}"
+    assert config_digest(cfg, method) == config_digest(dataclasses.replace(cfg, steps=20, eval_every=100), method)
 
 
 def test_shipped_params_presets_load_by_name_into_their_controller():

@@ -239,6 +239,15 @@ def write_params_preset(res: Dict[str, Any], path: str) -> None:
         yaml.safe_dump(doc, f, sort_keys=False, default_flow_style=None)
 
 
+def _training_label(res: Dict[str, Any]) -> str:
+    """What the training curve is: CMA-ES logs its population's mean objective, the gradient its batch's, on
+    the smooth rollout or the hard one (`es_objective`, `gates`)."""
+    cfg = res["config"]
+    if res["method"].startswith("cma-es"):
+        return f"training batch ({cfg.get('es_objective', 'smooth')}, population mean)"
+    return "training batch (hard forward)" if cfg.get("gates") == "straight_through" else "training batch (smooth)"
+
+
 def plot_log(res: Dict[str, Any], path: str) -> None:
     """Training objective per step and held-out objective at each evaluation, against rollouts used."""
     import matplotlib
@@ -248,12 +257,14 @@ def plot_log(res: Dict[str, Any], path: str) -> None:
     fig, ax = plt.subplots(figsize=(6, 3.6))
     tr = [(e["rollouts"], e["train_objective"]) for e in log if "train_objective" in e]
     if tr:
-        ax.plot(*zip(*tr), ".-", alpha=0.5, label="training batch (smooth)")
+        ax.plot(*zip(*tr), ".-", alpha=0.5, label=_training_label(res))
     he = [(e["rollouts"], e["held_out"]["objective"]) for e in log if "held_out" in e]
     ax.plot(*zip(*he), "o-", label="held-out (hard)")
     ax.set_xlabel("rollouts used")
     ax.set_ylabel("objective J (m)")
-    ax.set_title(f"{res['method']}: {res['config']['controller']} {res['config']['gait']} on {res['config']['terrain']}")
+    terrain = res["config"]["terrain"]
+    terrain = ", ".join(terrain) if isinstance(terrain, list) else terrain
+    ax.set_title(f"{res['method']}: {res['config']['controller']} {res['config']['gait']}\non {terrain}", fontsize=10)
     ax.legend()
     fig.tight_layout()
     fig.savefig(path, dpi=110)
