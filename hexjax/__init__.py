@@ -37,7 +37,7 @@ if not _os.environ.get("HEXJAX_KEEP_XLA_FLAGS"):
 # jaxlib 0.10.x split each batched LAPACK call (MJX's Cholesky, the implicit backward's solves) over XLA:CPU's
 # intra-op pool and blocked its worker until the parts finished, so on 2 cores two concurrent calls deadlocked;
 # hexjax sized that pool (PJRT_NPROC) while it ran on 0.10.2. jaxlib 0.11.1 removed that path, and hexjax now
-# needs jax 0.11.2 (docs/benchmarks.md, issue 19, fifth and sixth sessions; tests/test_runtime.py).
+# needs jax 0.11.2 (tests/test_runtime.py).
 
 _cache.enable()
 

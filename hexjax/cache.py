@@ -120,7 +120,7 @@ def every_cpu_process_writes() -> bool:
 # tactile gradient program (8 envs) is traced, none with these thresholds. Measured on 2 cores, fresh processes,
 # tracing and lowering that program: 26.1-26.3 s at the defaults (two runs), 19.1-21.9 s with these (four), the
 # same module (its hash equal); the forward program 8.0-8.6 s against 7.4-8.6 s; peak memory 924 and 926 MB. In
-# the test suite's long-lived workers the gain is about half that (docs/benchmarks.md, 2026-11-28, sixth session).
+# the test suite's long-lived workers the gain is about half that.
 TRACE_GC_THRESHOLD = (100_000, 50, 1_000)
 
 

@@ -10,9 +10,7 @@ show it. --kernels counts the optimised program's fusions (LLVM's kernels), inst
 measure of what XLA compiles that does not vary from run to run as the seconds do. --json writes the rows (and
 each gradient as .npy beside it). Options are XLA DebugOptions fields, e.g. '{"xla_gpu_autotune_level": 0}'.
 --gc python traces under Python's own garbage-collector thresholds instead of hexjax's
-(`hexjax.cache.rare_collections`); --trace-only stops after lowering. Figures: docs/benchmarks.md, issue 19
-(2026-11-25, fifth session; the phases of each compile: 2026-11-27, fifth session; the collector: 2026-11-28,
-sixth session; the kernels of a slimmer scan carry: 2026-11-28, seventh session).
+(`hexjax.cache.rare_collections`); --trace-only stops after lowering. What it found: docs/testing.md, "Time".
 
     python scripts/compile_probe.py --batch 4096 --duration 3 --run --options '{}' '{"xla_gpu_autotune_level": 0}'
 """

@@ -9,7 +9,7 @@ held-out evaluation the tuner uses (hard rollout, `held_out_batch` terrains): th
 --steps, the final (validation-picked) iterate, and for each value in --average the exponential moving
 average of the iterates of steps 1..last in the unconstrained params (`hexjax.tune.grad.average_iterate`, what
 `optimizer.average` evaluates during a run). Prints one JSON line per candidate; --json writes them all.
-Figures: docs/tuning.md, "The same with 200 held-out terrains"."""
+Figures: docs/tuning.md, "Gradient against CMA-ES"."""
 
 import argparse
 import json

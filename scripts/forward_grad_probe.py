@@ -27,7 +27,7 @@ variants of jvp's rule (2026-11-27, tenth session): jvpk takes the Newton Hessia
 solver's last iteration instead of rebuilding it (`_solve_keep`, a copy of MJX's solve that returns it), and
 jvpm also writes the constraint update's derivative in theta out for the pyramidal cone, from the solver's last
 state, instead of linearising MJX's update a second time (`_attach_forward`'s options). Both give jvp's gradient to
-rounding (docs/tuning.md, "Both taken from the solver, measured"). jvpf (2026-11-27, eleventh session) also takes
+rounding (docs/tuning.md, "How the gradient goes through a walk"). jvpf also takes
 the contact rows' dJ a, dJ^T f and dJ qvel matrix-free, so the tangent of efc_J is never formed: the rule that the
 package now carries and this mode runs (`hexjax.sim.forward_mode`, `TuneConfig.backward: forward`, `hexjax bench
 --grad --backward forward`). Each mode is traced after JAX's caches are

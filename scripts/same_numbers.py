@@ -1,15 +1,13 @@
-"""Issue 18's first acceptance item as one command: run `hexjax evaluate --batch 8` and the four paper
-experiments at issue 18's sizes, and compare each JSON with the one the pre-refactor commit (3699d70) wrote
-(kept in docs/results/pre_refactor_3699d70/).
+"""A refactor keeps every number: run `hexjax evaluate --batch 8` and four paper experiments at small sizes on
+`validated` physics, and either record their JSON as the reference or compare today's with a recorded set.
 
-    python scripts/same_numbers.py [--out DIR]
+    python scripts/same_numbers.py --record out/same_numbers_before     # before the change
+    python scripts/same_numbers.py --against out/same_numbers_before    # after it
 
-About 10.5 minutes on 2 CPU cores from an empty compilation cache (another job running beside it), 5 min 19 s
-with its programs in the cache. Prints one line per command and exits 1 when a number differs beyond float32
-rounding or a key was removed; keys that only today's code writes are listed and allowed. The kept files were
-written on an AMD EPYC with AVX-512 (2 cores, jax 0.11.2), with XLA_FLAGS as hexjax sets them now
-(docs/benchmarks.md, 2026-11-30, twenty-seventh session). On another CPU the obstacle walks round differently and
-differ by more (the 2026-11-26 section's "Numbers"); zhao2018, the planner alone, must still be identical."""
+About 10 minutes on 2 CPU cores from an empty compilation cache, 5 with its programs in the cache. Prints one
+line per command and exits 1 when a number differs beyond float32 rounding or a key was removed; keys that only
+today's code writes are listed and allowed. Compare on the machine that recorded: on another CPU the obstacle
+walks round differently; zhao2018, the planner alone, must still be identical."""
 
 import argparse
 import json
@@ -21,7 +19,6 @@ import tempfile
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from compare_json import walk  # noqa: E402
 
-KEPT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "docs", "results", "pre_refactor_3699d70")
 COMMANDS = {
     "evaluate": ["evaluate", "--batch", "8"],
     "zhao2018": ["experiment", "zhao2018"],
@@ -33,15 +30,24 @@ COMMANDS = {
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", default="", help="folder for today's JSON (default: a temporary one)")
-    out = ap.parse_args().out or tempfile.mkdtemp(prefix="same_numbers_")
+    which = ap.add_mutually_exclusive_group(required=True)
+    which.add_argument("--record", help="write the reference JSON into this folder")
+    which.add_argument("--against", help="a folder --record wrote: compare today's JSON with it")
+    ap.add_argument("--out", default="", help="folder for today's JSON with --against (default: a temporary one)")
+    a = ap.parse_args()
+    if a.against and not all(os.path.exists(os.path.join(a.against, f"{n}.json")) for n in COMMANDS):
+        ap.error(f"--against {a.against}: no recorded set there (run --record first)")
+    out = a.record or a.out or tempfile.mkdtemp(prefix="same_numbers_")
     os.makedirs(out, exist_ok=True)
     failed = False
     for name, args in COMMANDS.items():
         path = os.path.join(out, f"{name}.json")
         subprocess.run([sys.executable, "-m", "hexjax.cli", *args, "--json", path], check=True,
                        stdout=subprocess.DEVNULL)
-        with open(os.path.join(KEPT, f"{name}.json")) as f, open(path) as g:
+        if a.record:
+            print(f"{name}: recorded {path}")
+            continue
+        with open(os.path.join(a.against, f"{name}.json")) as f, open(path) as g:
             diffs = []
             walk(json.load(f), json.load(g), "", diffs)
         added = [p for k, p, *_ in diffs if k == "added"]
@@ -52,7 +58,7 @@ def main() -> int:
         for row in bad[:10]:
             print("  ", *row)
         failed |= bool(bad)
-    print("today's JSON:", out)
+    print(("recorded in" if a.record else "today's JSON:"), out)
     return int(failed)
 
 

@@ -1,6 +1,6 @@
 """MuJoCo Warp on the CPU device, without JAX: time `mujoco_warp.step` launched from Python against the same step
 recorded once (`wp.ScopedCapture`) and replayed (`wp.capture_launch`), and check that both give the same `qpos`.
-The measurement behind `hexjax.sim.backends.warp_cpu` (docs/benchmarks.md, "2026-11-28 (fifth session)").
+The measurement behind `hexjax.sim.backends.warp_cpu` (docs/ecosystem.md).
 
     python scripts/warp_cpu_replay_probe.py --worlds 1,8,64 --steps 100 --json out/warp_cpu_replay.json
 """

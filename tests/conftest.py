@@ -15,7 +15,7 @@ import os
 # `+reduce`, XLA's default, because one chaotic outcome had been set with it (the stones family's drop in
 # `test_terrain::test_families_walkable_at_zero_and_harder_with_difficulty`, whose docstring now gives the
 # rates measured at 128 envs). With hexjax's setting the warm suite took 5 min 12 s against 6 min 1 s
-# (docs/benchmarks.md, 2026-11-27, sixth session).
+# (docs/testing.md).
 TEST_XLA_FLAGS = ("--xla_force_host_platform_device_count={devices} "
                   "--xla_backend_extra_options=xla_cpu_disable_new_fusion_emitters")
 os.environ.setdefault("XLA_FLAGS", TEST_XLA_FLAGS.format(devices=2))
@@ -133,8 +133,7 @@ def _free_compiled_rollouts():
     each module compile its eager operations again (half of a warm run's 7,260 compiles, about 80 s of CPU).
     What survives the collection is frozen (`gc.freeze`), so the next module's collection walks only the objects
     made since. Walking every object of a worker (JAX, MJX, Brax and their caches) took 0.9 s at the first module's
-    end and up to 2.5 s later: 121 s of CPU over the 76 module ends of a warm run on 2 cores, 7 s frozen
-    (docs/benchmarks.md, 2026-11-28, thirteenth session). A frozen object that later becomes garbage in a cycle
+    end and up to 2.5 s later: 121 s of CPU over the 76 module ends of a warm run on 2 cores, 7 s frozen. A frozen object that later becomes garbage in a cycle
     (an entry JAX's caches drop) is kept until the memory bound below unfreezes everything for a full collection."""
     yield
     import sys

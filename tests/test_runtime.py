@@ -13,7 +13,7 @@ from conftest import SHARED_FIXTURES
 
 # four independent batched Cholesky factorisations in one program: XLA:CPU may run them at once, and jaxlib
 # 0.10.x split each batch over the intra-op pool and blocked until its parts were done; with the default pool of
-# a 2-core machine this program hung in its first call (docs/benchmarks.md, issue 19, fifth session)
+# a 2-core machine this program hung in its first call
 _CONCURRENT_CHOLESKY = """
 import hexjax, jax, jax.numpy as jnp, numpy as np
 a = np.random.default_rng(0).normal(size=(4, 256, 24, 24)).astype(np.float32)

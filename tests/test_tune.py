@@ -75,7 +75,7 @@ def test_cpg_gradient_matches_central_differences():
     Both gradients recompute each control step in the backward pass (`remat`), as the tuner's do, so this check
     holds the tuner's backward path to central differences while the tactile check above holds the default one.
     The cosines are those without it to the digits printed, and XLA compiles the two gradient programs in about
-    25 s less CPU (a third fewer kernels: docs/benchmarks.md, 2026-11-28, seventh session).
+    25 s less CPU (a third fewer kernels).
     The 36 differences come from a forward program of their own: there a call costs 0.035 s against 0.46 s for
     the value_and_grad program (13x, 2 cores), so its compile (about 16 s with tracing) pays for itself in a cold
     run, and a warm run of this test takes 14.7 s instead of 31.7 s. (The tactile check above keeps one program:

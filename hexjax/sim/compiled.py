@@ -112,7 +112,7 @@ def fresh_trace() -> None:
     two more `_where` functions after the two evaluation programs had been traced in the same process (a
     `jnp.remainder` kept from them called an older `_where`) than in a process that loaded those programs from
     disk. The key of JAX's persistent cache is a hash of the module, so that process compiled the program
-    again (165 s on an H100, docs/benchmarks.md, 2026-11-26 eighth session).
+    again (165 s on an H100).
 
     Only the two tracing caches are emptied; compiled executables of jitted functions and eager operations
     stay. Where this JAX lays them out otherwise, every cache is cleared."""

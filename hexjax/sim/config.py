@@ -105,8 +105,7 @@ class RolloutConfig:
     # Trace a control step's physics steps one after another instead of as a loop (values equal to float32
     # rounding: XLA fuses them differently). In reverse mode with `remat`, the loop stacks hundreds of small
     # residual arrays per physics step for the transpose; unrolled, value_and_grad of the tuning objective runs
-    # 28 % faster on an H100 (B = 4,096), and XLA takes 2.1x as long to compile it (docs/benchmarks.md,
-    # 2026-11-25, fourth session).
+    # 28 % faster on an H100 (B = 4,096), and XLA takes 2.1x as long to compile it (docs/tuning.md).
     unroll_substeps: bool = False
     # How reverse mode goes through MJX's constraint solve (forward values are the same for all three):
     #   'none'      MJX's lax.while_loop, which JAX cannot reverse: gradients need physics.iterations == 1
@@ -121,7 +120,7 @@ class RolloutConfig:
     # How the gradient is carried: 'reverse' (jax.grad, the default) or 'forward' (jax.jacfwd, one tangent per
     # tuned number beside the primal; `hexjax.sim.forward_mode` gives MJX's solve its forward-mode rule). Forward
     # mode needs solver_grad='implicit' and has no remat (no backward pass) and no grad_clip (it bounds a
-    # cotangent); it pays where the tuned numbers are few (docs/tuning.md, "Forward mode").
+    # cotangent); it pays where the tuned numbers are few (docs/tuning.md, "How the gradient goes through a walk").
     grad_mode: str = "reverse"
     # Every this many control steps the compiled rollout reports its step index to the host (see
     # `progress_to`); 0: never. A host callback costs ~0.1 ms, so a few hundred calls are free.

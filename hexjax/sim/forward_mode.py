@@ -3,7 +3,7 @@ gradients taken with `jax.jacfwd` (one tangent per tuned number, carried along t
 `RolloutConfig.grad_mode='forward'`, `TuneConfig.backward: forward`).
 
 With few tuned numbers (5 for the tactile preset) this is the cheaper program: one loop, with no second copy of the
-control step (`remat`) and no reverse loop (docs/tuning.md, "Forward mode"). It is the forward-mode twin of
+control step (`remat`) and no reverse loop (docs/tuning.md, "How the gradient goes through a walk"). It is the forward-mode twin of
 `hexjax.sim.implicit`: MJX's solve runs as MJX runs it, cut from the derivative, and a custom JVP gives its
 solution a* the tangent
 

@@ -136,7 +136,7 @@ def spd_solve(a, b):
     factor of a, then two triangular solves), with the derivative of the solution itself:
     d(a^{-1} b) = a^{-1} (db - da a^{-1} b), one more solve with the same factor for each tangent. JAX's own rule
     differentiates the factor instead (two triangular solves with a matrix right-hand side per tangent, O(n^3)),
-    which took 7 % of a forward-mode gradient's GPU time (docs/benchmarks.md, 2026-11-27 eighth session)."""
+    which took 7 % of a forward-mode gradient's GPU time."""
     return jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(a), b)
 
 

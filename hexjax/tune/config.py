@@ -67,9 +67,9 @@ class TuneConfig:
     # 'forward' takes the same windowed gradient in forward mode, one tangent per tuned number beside the
     # primal (`RolloutConfig.grad_mode`): one loop and no backward pass, the fastest where the tuned numbers are
     # few (5 for the tactile preset: 38 % of the forward's rate on an H100); needs solver_grad: implicit and
-    # grad_clip: null (docs/tuning.md, "Forward mode"). First-order estimator only.
+    # grad_clip: null (docs/tuning.md, "How the gradient goes through a walk"). First-order estimator only.
     backward: str = "sequential"
-    # the gradient estimator of `hexjax.tune.grad` (docs/tuning.md, "The hybrid estimator"): 'first_order'
+    # the gradient estimator of `hexjax.tune.grad` (docs/tuning.md, "Bias and variance of the windowed gradient"): 'first_order'
     # is the windowed pathwise gradient; 'hybrid' fits the whole walk's directional derivatives along
     # `zo_pairs` antithetic perturbations per training terrain (N(0, zo_sigma^2) on the unconstrained scale),
     # with the windowed gradient as a prior worth `zo_prior` pairs

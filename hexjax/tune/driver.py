@@ -87,7 +87,7 @@ def program_digest(cfg: TuneConfig, method: str) -> str:
     """Identifies a tuner's compiled program (`Problem.static`): `config_digest` less the settings the program
     does not depend on, so that runs that differ only in those (another seed, learning rate or held-out
     batch) share one kept program instead of tracing and lowering it again (a first step of 70-76 s against
-    41 s on an H100 for the `cpg_step_ditch` gradient; docs/benchmarks.md, 2026-11-26 ninth session)."""
+    41 s on an H100 for the `cpg_step_ditch` gradient)."""
     return config_digest(cfg, method, also_drop=_OUTSIDE_PROGRAM)
 
 

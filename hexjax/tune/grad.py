@@ -1,6 +1,6 @@
 """Gradient tuning: Adam (or SGD) on windowed gradients of the smooth objective through MJX (optax), or on
 the hybrid estimate that corrects them by a zeroth-order term (`hexjax.tune.hybrid`), with the papers' hand
-rules as the start (docs/tuning.md, "Why truncated windows")."""
+rules as the start (docs/tuning.md, "How the gradient goes through a walk")."""
 
 from __future__ import annotations
 

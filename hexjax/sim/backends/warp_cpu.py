@@ -15,7 +15,7 @@ later calls with the same buffers are replayed. A physics step inside a rollout'
 every step, so a walk records two graphs per Warp function and replays them. The replay launches the same kernels
 with the same arguments, so the results are the same bit for bit (`tests/test_backends.py` checks it). A 6 s walk
 of 8 envs took 8.8 s instead of 27.9 s; `hexjax bench --backend warp` ran 13x faster at B = 1, 7.4x at B = 8
-and 1.2x at B = 256 (docs/benchmarks.md, "2026-11-28 (fifth session)").
+and 1.2x at B = 256.
 
 The elliptic friction cone (`PhysicsConfig(cone="elliptic")`, the default of `hexjax robustness`) adds each
 contact's cone Hessian to the Newton step's matrix in MuJoCo Warp's `_update_gradient_JTCJ_dense`. It runs one
@@ -27,7 +27,7 @@ kernel was 54 % of a CPU walk's time on Warp (sampled with perf; `tests/test_ran
 walk). `enable()` also makes a CPU launch of that kernel take the CUDA path's loop with a single block: one
 thread per element, looping over the slots in order and stopping at the last contact. Each element sums the same
 contacts in the same order as before, so the results are the same bit for bit (`tests/test_backends.py`); the
-walk took 21.8 s instead of 64.2 s (docs/benchmarks.md, "2026-11-29 (seventeenth session)").
+walk took 21.8 s instead of 64.2 s.
 
 Both reach into Warp's and MuJoCo Warp's private parts (`warp._src.jax.ffi.FfiCallable`, the Hessian kernel's
 argument names), so they are applied only to the Warp version they were written against (`KNOWN_VERSIONS`, the
