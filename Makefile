@@ -21,7 +21,7 @@ $(BIN)/hexjax: pyproject.toml constraints.txt
 setup: $(BIN)/hexjax
 
 demo: setup
-	$(BIN)/hexjax evaluate --gait tripod --distance 1.0 --batch 8 --json out/evaluate_tripod.json
+	$(BIN)/hexjax evaluate --gait tripod --distance 1.0 --batch 8 --json out/evaluate_tripod.json --png out/evaluate_tripod.png
 
 # two workers (one per core of the reference machine), the slowest tests handed out first and one at a time
 # (tests/conftest.py's scheduler: xdist's default hands each worker a block of consecutive tests, which gave one

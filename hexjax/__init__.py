@@ -51,6 +51,7 @@ _EXPORTS = {
     "hexjax.sim.step": ["Summary"],
     "hexjax.sim.rollout": ["RolloutStats", "make_mesh", "rollout", "rollout_function"],
     "hexjax.control.base": ["Controller"],
+    "hexjax.control.registry": ["CONTROLLERS", "make_controller"],
     "hexjax.control.gait": ["GAITS", "GaitController", "GaitParams"],
     "hexjax.control.tactile": ["TactileGaitController", "TactileParams", "TactileState"],
     "hexjax.control.cpg": ["CPG_GAITS", "CPGController", "CPGParams", "CPGState", "gait_fields"],

@@ -6,7 +6,9 @@ from __future__ import annotations
 
 import argparse
 import os
+import signal
 import sys
+import threading
 import types
 
 from hexjax.experiments.registry import Entry, Option, commands, experiment, experiments
@@ -84,6 +86,8 @@ def build_parser(argv) -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="hexjax", description="Batched MJX hexapods on randomised terrains: the "
                                 "controllers, planners and experiments of Luneckas 2020, Yu 2019, Zhao 2018 and "
                                 "Chen 2019. Compiled programs are cached (HEXJAX_CACHE_DIR; =off to disable).")
+    from hexjax import __version__
+    p.add_argument("--version", action="version", version=f"hexjax {__version__}")
     sub = p.add_subparsers(dest="cmd", required=True, metavar="COMMAND")
     for name, entry in commands().items():
         c = sub.add_parser(name, help=entry.summary, description=entry.summary)
@@ -106,6 +110,31 @@ def build_parser(argv) -> argparse.ArgumentParser:
     return p
 
 
+def _interrupted_line(name: str) -> str:
+    from hexjax.experiments import runner
+    return f"\n{name}: interrupted; {runner.kept() or 'nothing of this run was kept on disk'}"
+
+
+def _exit_on_ctrl_c(name: str) -> None:
+    """Ctrl-C ends the command within a moment, even inside a long compiled call (where Python sees the
+    signal only when the call returns): the signal's byte reaches a watching thread through Python's wakeup
+    file, which prints what was kept and exits with 130. Files are written whole or not at all
+    (`runner.write_partial`), so nothing is left half-written."""
+    if threading.current_thread() is not threading.main_thread():
+        return
+    r, w = os.pipe()
+    os.set_blocking(w, False)
+    signal.set_wakeup_fd(w)
+
+    def watch():
+        while os.read(r, 1) != bytes([signal.SIGINT]):
+            pass
+        print(_interrupted_line(name), file=sys.stderr, flush=True)
+        os._exit(130)
+
+    threading.Thread(target=watch, daemon=True, name="hexjax-ctrl-c").start()
+
+
 def main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     try:
@@ -125,8 +154,13 @@ def main(argv=None) -> int:
     opts = types.SimpleNamespace(**{o.name: getattr(a, o.name) for o in entry.options})
     from hexjax.experiments import runner
     name = f"hexjax {a.cmd}{' ' + a.experiment if a.cmd == 'experiment' else ''}"
+    if argv is None or argv == sys.argv[1:]:  # the command line, not a caller in Python (tests)
+        _exit_on_ctrl_c(name)
     try:
         runner.run(entry, opts)
+    except KeyboardInterrupt:
+        print(_interrupted_line(name), file=sys.stderr)
+        return 130
     except ValueError as err:
         print(f"{name}: error: {err}", file=sys.stderr)
         return 2

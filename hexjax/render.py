@@ -21,9 +21,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from hexjax.control.cpg import CPGController
-from hexjax.control.gait import GaitController
-from hexjax.control.tactile import TactileGaitController
+from hexjax.control.registry import make_controller
 from hexjax.sim.config import PhysicsConfig, RolloutConfig
 from hexjax.sim.physics import get_physics, traced_backend
 from hexjax.sim.mjcf import build_mjcf
@@ -32,7 +30,8 @@ from hexjax.world.presets import get_robot, get_terrain
 from hexjax.world.robot import LEG_NAMES, RobotSpec
 from hexjax.world.terrain import sample
 
-CONTROLLERS = {"gait": GaitController, "tactile": TactileGaitController, "cpg": CPGController}
+# the controllers a video can show: those that walk with their default params (hexjax.control.registry)
+RENDERABLE = ("gait", "tactile", "cpg")
 
 PAD_ON = np.array([1.0, 0.85, 0.1, 1.0])
 
@@ -177,9 +176,9 @@ def render_walk(robot_name: str = "luneckas2020", terrain_name: str = "high-larg
     preset = get_physics(physics)
     backend = traced_backend(preset, "joint traces for the video")
     physics = preset.config(tspec)
-    if controller not in CONTROLLERS:
-        raise ValueError(f"controller={controller!r}: choose one of {sorted(CONTROLLERS)}")
-    ctrl = CONTROLLERS[controller](rb)
+    if controller not in RENDERABLE:
+        raise ValueError(f"controller={controller!r}: choose one of {sorted(RENDERABLE)}")
+    ctrl = make_controller(controller, rb)
     terrain = sample(tspec, jax.random.PRNGKey(seed), max(envs) + 1)
     s = rollout(rb, terrain, ctrl, ctrl.default_params(), seconds, jax.random.PRNGKey(seed + 1), physics=physics,
                 config=RolloutConfig(record=True), backend=backend)

@@ -11,15 +11,14 @@ in the JSON.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import time
 
 import jax
 import numpy as np
 
-from hexjax.control.gait import GaitController
-from hexjax.control.tactile import TactileGaitController, overcome_height
+from hexjax.control.registry import make_controller
+from hexjax.control.tactile import overcome_height
 from hexjax.experiments.metrics import goal_errors
 from hexjax.experiments.robustness import wilson
 from hexjax.sim.physics import get_physics, shared_config
@@ -58,9 +57,7 @@ def main(argv=None):
                           slots_per_leg=physics.slots_per_leg, torso_slots=physics.torso_slots),
            "physics": preset.record(preset.backend), "rows": []}
     for cname in a.controllers.split(","):
-        ctrl = {"gait": GaitController, "tactile": TactileGaitController}[cname](robot, gait="tripod")
-        n_cycles, duration = ctrl.duration_for(a.distance)
-        ctrl = dataclasses.replace(ctrl, n_cycles=n_cycles)
+        ctrl, duration = make_controller(cname, robot).for_distance(a.distance)
         params = ctrl.default_params()
         if cname == "tactile":  # per env: Eq. 7's h_k from the env's own stairs / box heights (else the default)
             h = np.array([s.height_range[1] if s.kind in ("stairs", "boxes") else 0.03 for s in specs])

@@ -26,6 +26,7 @@ Readings and choices (also in docs/planning.md):
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import Optional
 
 import jax
@@ -111,6 +112,13 @@ class AvoidGaitController(PatternClock):
                                                                  advance=self.advance(g)),
                                target=jnp.array([2.0, 0.0]), centres=jnp.zeros((1, 2)),
                                radii=jnp.full((1,), 0.1), valid=jnp.zeros((1,), bool))
+
+    def for_distance(self, distance: float, params=None):
+        """Room for a detour of twice `distance` m at the fast gait, plus two cycles; the gait stops by itself
+        at its target, so no stop is set."""
+        g = fast_gait(self) if params is None else params.gait
+        cycle = float(np.mean(g.swing_time)) * self.pattern.period
+        return self, (math.ceil(2 * distance / self.advance(g)) + 2) * cycle
 
     def advance(self, g: GaitParams) -> float:
         """Body advance per gait cycle of gait params g, m (Luneckas: l per swing slot x T / (T - 1))."""

@@ -8,6 +8,8 @@ pytree; everything a controller remembers between steps lives in a `state` pytre
 
     default_params(**overrides) -> params      the papers' numbers, fields replaced by `overrides`
     validate_params(params)                    host-side checks before tracing (ValueError naming the field)
+    for_distance(distance, params) -> (controller, seconds)   the controller with its stop set and the
+                                               rollout seconds for a walk of `distance` m
     init(params, key) -> state                 one env's initial memory
     step(params, state, obs) -> (state, action)   one control period; obs is `hexjax.sim.model.Obs`, action
                                                the (18,) joint position targets, rad
@@ -75,6 +77,12 @@ class Controller:
     def initial_action(self, params) -> Optional[jax.Array]:
         """(18,) joint targets to settle in before the first step; None: the robot's neutral stance."""
         return None
+
+    def for_distance(self, distance: float, params=None) -> Tuple["Controller", float]:
+        """(this controller with its stop set, rollout seconds) for a walk of `distance` m with `params`
+        (default: `default_params()`): each controller's own rule (subclasses)."""
+        raise NotImplementedError(f"{type(self).__name__} has no rule for a walk's length: give the rollout "
+                                  "its seconds")
 
     def trace(self, state, obs) -> Any:
         """A pytree recorded per control step with `RolloutConfig(record=True)`; None: nothing."""

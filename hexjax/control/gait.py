@@ -134,6 +134,11 @@ class PatternClock(Controller):
         n = self.cycles_for(distance, p)
         return n, n * float(np.mean(p.swing_time)) * self.pattern.period + rest
 
+    def for_distance(self, distance: float, params=None):
+        """This gait stopping after the cycles that cover `distance` m (`duration_for`), and its seconds."""
+        n, seconds = self.duration_for(distance, params)
+        return dataclasses.replace(self, n_cycles=n), seconds
+
 
 @dataclasses.dataclass(frozen=True)
 class GaitController(PatternClock):

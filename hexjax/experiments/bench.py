@@ -13,26 +13,15 @@ import mujoco
 import numpy as np
 from tqdm.auto import tqdm
 
-from hexjax.control.avoid_gait import AvoidGaitController
-from hexjax.control.cpg import CPGController
 from hexjax.control.gait import GaitController
-from hexjax.control.perceive_gait import PerceivingAvoidGait
-from hexjax.control.tactile import TactileGaitController
+from hexjax.control.registry import CONTROLLERS, make_controller
 from hexjax.sim.config import PhysicsConfig, RolloutConfig
 from hexjax.sim.physics import get_physics
 from hexjax.sim.mjcf import compile_mjcf
 from hexjax.sim.model import batch_model, sim_model
 from hexjax.sim.rollout import BACKENDS, make_mesh, rollout
-from hexjax.perceive.sensors import get_sensor
 from hexjax.world.presets import get_robot, get_terrain
 from hexjax.world.terrain import sample
-
-# the controllers a bench row can run: the Luneckas 2020 open-loop gait, the Yu 2019 CPG, the Luneckas 2020
-# tactile switch, the gait steered by the Zhao 2018 planner (37 candidates scored every control step), and
-# that planner steered by what the Kinect preset perceives (a scan, map, RANSAC and circles every 5 steps)
-CONTROLLERS = {"gait": GaitController, "cpg": CPGController, "tactile": TactileGaitController,
-               "avoid": AvoidGaitController,
-               "perceive": lambda robot, gait: PerceivingAvoidGait(robot, gait=gait, sensor=get_sensor("kinect_v1"))}
 
 
 def mujoco_c_steps_per_s(robot: str, terrain: str, physics: PhysicsConfig, seconds: float = 2.0) -> float:
@@ -114,7 +103,7 @@ def bench(robot: str = "luneckas2020", batches: Sequence[int] = (16, 64, 256), s
     spec = get_robot(robot)
     ctrls = {}
     for n in names:
-        ctrls[n] = CONTROLLERS[n](spec, gait=gait)
+        ctrls[n] = make_controller(n, spec, gait=gait)
     cfg = RolloutConfig()
     steps = {n: int(round((sim_seconds + cfg.settle_time) / p.timestep)) for n, p in presets.items()}
     rows = []

@@ -5,13 +5,12 @@ compiles the rollout once."""
 
 from __future__ import annotations
 
-import dataclasses
 from typing import Dict, Sequence
 
 import jax
 from tqdm.auto import tqdm
 
-from hexjax.control.gait import GaitController
+from hexjax.control.registry import make_controller
 from hexjax.experiments.metrics import batch_stats, goal_errors
 from hexjax.sim.config import RolloutConfig
 from hexjax.sim.model import sim_model
@@ -42,10 +41,9 @@ def evaluate(robot: str = "luneckas2020", gait: str = "tripod", distance: float 
         raise ValueError(f"backend={backend!r}: use one of {BACKENDS}")
     spec = get_robot(robot)
     specs = {name: get_terrain(name, length=distance + 0.3) for name in categories}
-    ctrl = GaitController(spec, gait=gait, step_height=step_height)
+    ctrl = make_controller("gait", spec, gait=gait, step_height=step_height)
     params = ctrl.default_params()
-    n_cycles, duration = ctrl.duration_for(distance, params)
-    ctrl = dataclasses.replace(ctrl, n_cycles=n_cycles)
+    ctrl, duration = ctrl.for_distance(distance, params)
     m = max(s.max_boxes for s in specs.values())
     physics = shared_config(preset, specs.values())  # one program for every category
     if backend != "c":  # build the MJX model up front so no category's timing includes it
@@ -63,7 +61,7 @@ def evaluate(robot: str = "luneckas2020", gait: str = "tripod", distance: float 
         stats.update(wall_s=st.run_s, compile_s=st.compile_s, env_steps_per_s=st.env_steps_per_s)
         results[name] = stats
     return {"config": dict(robot=spec.name, gait=gait, distance_m=distance, batch=batch, seed=seed,
-                           gait_cycles=n_cycles, duration_s=duration, step_height_m=step_height,
+                           gait_cycles=ctrl.n_cycles, duration_s=duration, step_height_m=step_height,
                            step_length_m=float(params.step_length), swing_time_s=float(params.swing_time),
                            slots_per_leg=physics.slots_per_leg, torso_slots=physics.torso_slots,
                            backend=jax.default_backend(), devices=len(jax.devices()), physics_backend=backend),
@@ -84,7 +82,7 @@ def format_table(result: Dict) -> str:
 # The command (configs/commands/evaluate.yaml) ---------------------------------------------------------------
 def run(o, entry) -> Dict:
     return evaluate(robot=o.robot, gait=o.gait, distance=o.distance, batch=o.batch, seed=o.seed,
-                    categories=tuple(o.categories), step_height=o.step_height / 100.0, physics=o.physics,
+                    categories=tuple(o.categories), step_height=o.step_height, physics=o.physics,
                     backend=o.backend or None)
 
 
@@ -94,3 +92,37 @@ def report(res: Dict) -> str:
     return (f"\n{res['physics']['name']} physics ({c['physics_backend']}); {c['robot']} {c['gait']} gait, {c['distance_m']:g} m ({c['gait_cycles']} cycles, "
             f"{c['duration_s']:.1f} s), {c['batch']} envs per category, seed {c['seed']}, no tactile method\n"
             + format_table(res) + f"\ncompile {compile_s:.1f} s (one program for every category)")
+
+
+def plot(res: Dict, png: str):
+    """Mean |dx| and |dy| at the goal per category (bars, the envs' spread of dx as whiskers), and the share of
+    envs that fell (right axis)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+    cats = list(res["categories"])
+    s = [res["categories"][c] for c in cats]
+    x = np.arange(len(cats))
+    fig, ax = plt.subplots(figsize=(1.4 * len(cats) + 2.5, 3.6))
+    ax.bar(x - 0.2, [r["abs_dx_cm"] for r in s], 0.4, yerr=[r["dx_std_cm"] for r in s], capsize=3,
+           label="|dx| (along the walk)", color="#4878a8")
+    ax.bar(x + 0.2, [r["abs_dy_cm"] for r in s], 0.4, yerr=[r["dy_std_cm"] for r in s], capsize=3,
+           label="|dy| (across)", color="#e0a030")
+    ax.set_xticks(x, cats)
+    ax.set_ylabel("goal error (cm)")
+    ax.set_ylim(bottom=0)
+    ax2 = ax.twinx()
+    ax2.plot(x, [r["fall_pct"] for r in s], "kv", label="fell")
+    ax2.set_ylabel("envs fallen (%)")
+    ax2.set_ylim(0, 100)
+    c = res["config"]
+    ax.set_title(f"{c['robot']} {c['gait']} gait, {c['distance_m']:g} m, {c['batch']} envs a category "
+                 f"({res['physics']['name']} physics)", fontsize=10)
+    h1, l1 = ax.get_legend_handles_labels()
+    h2, l2 = ax2.get_legend_handles_labels()
+    ax.legend(h1 + h2, l1 + l2, fontsize=8, loc="upper left")
+    fig.tight_layout()
+    fig.savefig(png, dpi=110)
+    plt.close(fig)
+    return [png]

@@ -35,6 +35,7 @@ import numpy as np
 
 from hexjax.experiments.fidelity_view import CONTRACT, plot, report  # noqa: F401 (plot, report: the registry's)
 from hexjax.experiments.metrics import paired
+from hexjax.experiments.runner import read_partial, write_partial
 
 ALL = "all"
 
@@ -110,14 +111,13 @@ def _presets(o):
 
 def _runs(o, cells: List[Cell], controllers: Dict, kinds: Dict[str, str], entry_preset: Dict):
     """[(label, controller, robot, duration, [cell indices])]: which cells each controller walks."""
-    from hexjax.experiments.robustness import _duration
     allowed = entry_preset.get("controllers", {})
     out = []
     for label, (ctrl, rb) in controllers.items():
         which = allowed.get(label, allowed.get(label.partition("@")[0], ALL))
         idx = [i for i, c in enumerate(cells) if which == ALL or kinds[c.terrain] in which]
         if idx:
-            ctrl, duration = _duration(ctrl, o.distance)
+            ctrl, duration = ctrl.for_distance(o.distance)
             out.append((label, ctrl, rb, duration, idx))
     return out
 
@@ -307,15 +307,10 @@ def run(o, entry) -> Dict:
     pkey = {side: _physics_key(r) for side, r in presets.items()}
     digest = _digest(o, spec)
     partial = (o.json + ".partial.json") if o.json else ""
-    done: Dict = {}
-    if partial and os.path.exists(partial):
-        with open(partial) as f:
-            saved = json.load(f)
-        if saved.get("digest") == digest:
-            done = saved["runs"]
     key = jax.random.PRNGKey(o.seed)
     rep = spec.get("replay") if not o.only else None
     labels = [r[0] for r in runs] + (["replay"] if rep else [])
+    done: Dict = read_partial(partial, digest, "runs", "fidelity", "rollouts", 2 * len(labels))
     sides = {"a": (a, backend_a), "b": (b, b.backend)}
     todo = {side: [lb for lb in labels if f"{lb}|{pkey[side]}" not in done] for side in sides}
     bar = tqdm(total=2 * len(labels), initial=2 * len(labels) - sum(map(len, todo.values())), desc="fidelity",
@@ -338,8 +333,8 @@ def run(o, entry) -> Dict:
                 with lock:
                     done[f"{label}|{pkey[side]}"] = out
                     if partial:
-                        with open(partial, "w") as f:
-                            json.dump({"digest": digest, "runs": done}, f)
+                        write_partial(partial, {"digest": digest, "runs": done}, f"{len(done)} of "
+                                      f"{2 * len(labels)} rollouts kept in {partial}; the same command resumes")
                     bar.set_postfix_str(f"{label} on {preset.name} ({backend}) done")
                     bar.update(1)
 
@@ -352,10 +347,6 @@ def run(o, entry) -> Dict:
         else:
             work("b")
             work("a")
-    except KeyboardInterrupt:
-        kept = f"{len(done)} rollouts kept in {partial}; run the same command to resume" if partial \
-            else "nothing kept (no --json)"
-        raise KeyboardInterrupt(f"hexjax fidelity interrupted: {kept}") from None
     finally:
         bar.close()
     res_a = {label: done[f"{label}|{pkey['a']}"] for label in labels}

@@ -22,6 +22,7 @@ from typing import Dict, List, Sequence, Tuple
 import numpy as np
 
 from hexjax import cache
+from hexjax.experiments.runner import read_partial, write_partial
 from hexjax.experiments.robustness_view import ENVELOPE_SUCCESS, plot, report  # noqa: F401 (plot, report: the registry's)
 from hexjax.world.files import read_yaml
 from hexjax.world.randomization import AXES as RANDOM_AXES
@@ -124,42 +125,17 @@ def _controllers(names, default_robot):
     """{label: (controller, robot)} for labels 'name' or 'name@robot' (a robot preset or .yaml path; default
     --robot): gait and tactile (Luneckas 2020 tripod), cpg (Yu 2019, reflexes on), avoid (the tripod steered
     by the Zhao 2018 planner round the terrain's boxes)."""
-    from hexjax.control.avoid_gait import AvoidGaitController
-    from hexjax.control.cpg import CPGController
-    from hexjax.control.gait import GaitController
-    from hexjax.control.tactile import TactileGaitController
+    from hexjax.control.registry import make_controller
     from hexjax.world.presets import get_robot
-    make = {"gait": lambda r: GaitController(r, gait="tripod"),
-            "tactile": lambda r: TactileGaitController(r, gait="tripod"),
-            "cpg": lambda r: CPGController(r), "avoid": lambda r: AvoidGaitController(r)}
     out = {}
     for label in names:
         name, _, rname = str(label).partition("@")
-        if name not in make:
+        if name not in CONTROLLERS:
             raise ValueError(f"--controllers {label!r}: use some of {', '.join(CONTROLLERS)} "
                              "(optionally name@robot)")
         robot = get_robot(rname) if rname else default_robot
-        out[str(label)] = (make[name](robot), robot)
+        out[str(label)] = (make_controller(name, robot), robot)
     return out
-
-
-def _duration(ctrl, distance: float):
-    """(controller with its stop set, seconds of control) for a walk of `distance` m: the Luneckas 2020 gaits
-    stop after the cycles that cover it; the CPG (no stop) walks distance / its nominal speed (one stroke per
-    leader period 2 pi / omega_1) plus a period to start; the avoiding gait gets room for a detour of twice the
-    distance (it stops by itself at the target)."""
-    from hexjax.control.avoid_gait import AvoidGaitController, fast_gait
-    from hexjax.control.cpg import CPGController
-    if isinstance(ctrl, CPGController):
-        p = ctrl.default_params()
-        period = 2 * math.pi / float(p.net.omega[0])
-        return ctrl, distance / (float(p.step_length) / period) + period
-    if isinstance(ctrl, AvoidGaitController):
-        g = fast_gait(ctrl)
-        cycle = float(g.swing_time) * ctrl.pattern.period
-        return ctrl, (math.ceil(2 * distance / ctrl.advance(g)) + 2) * cycle
-    n_cycles, duration = ctrl.duration_for(distance)
-    return dataclasses.replace(ctrl, n_cycles=n_cycles), duration
 
 
 def _avoid_params(ctrl, terr, kind: str, distance: float):
@@ -258,21 +234,16 @@ def sweep(o) -> Dict:
     n_box = max(s.max_boxes for s in t_specs)
     plan = {}
     for cname, (ctrl, rb) in ctrls.items():
-        ctrl, duration = _duration(ctrl, o.distance)
+        ctrl, duration = ctrl.for_distance(o.distance)
         for r in r_specs:
             r.check_horizon(duration)
         plan[cname] = (ctrl, rb, duration)
 
     digest = _digest(o)
     partial = (o.json + ".partial.json") if o.json else ""
-    done = {}
-    if lead and partial and os.path.exists(partial):
-        with open(partial) as f:
-            saved = json.load(f)
-        if saved.get("digest") == digest:
-            done = saved["cells"]
     key = jax.random.PRNGKey(o.seed)
     jobs = [(c, i) for c in ctrls for i in range(len(cells))]
+    done = read_partial(partial, digest, "cells", "robustness", "cells", len(jobs)) if lead else {}
     if jax.process_count() > 1:  # every process skips the cells process 0 has kept
         from jax.experimental import multihost_utils
         kept = multihost_utils.broadcast_one_to_all(np.array([f"{c}|{i}" in done for c, i in jobs]))
@@ -310,8 +281,8 @@ def sweep(o) -> Dict:
         compile_s[cname] += st.compile_s
         done[tag] = stats
         if partial and lead:
-            with open(partial, "w") as f:
-                json.dump({"digest": digest, "cells": done}, f, default=float)
+            write_partial(partial, {"digest": digest, "cells": done},
+                          f"{len(done)} of {len(jobs)} cells kept in {partial}; the same command resumes after them")
     if not lead:  # process 0 gathers every cell and writes the results
         return {"process": jax.process_index(), "cells_run": len(jobs) - len(skip)}
     rows = []

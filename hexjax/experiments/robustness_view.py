@@ -9,6 +9,14 @@ import numpy as np
 ENVELOPE_SUCCESS = 0.9  # a controller's envelope: the hardest level with at least this success at every easier one
 
 
+def _devices(c) -> str:
+    """Where a cell ran: on a CPU the sweep shards over one XLA device per core, so say cores there."""
+    n, platform = c.get("devices", 1), c.get("backend", "")
+    if platform == "cpu":
+        return f"{n} CPU core{'s' if n > 1 else ''} (one XLA device each)"
+    return f"{n} {platform.upper() or 'device'}{'s' if n > 1 else ''}"
+
+
 def report(res: Dict) -> str:
     if "process" in res:
         return f"process {res['process']}: ran its shards of {res['cells_run']} cells; process 0 writes the results"
@@ -16,7 +24,7 @@ def report(res: Dict) -> str:
     names = list(c["axes"])
     head = (f"{'controller':<10} " + " ".join(f"{n:>16}" for n in names)
             + f" {'succ %':>7} {'95 % CI':>13} {'goal err cm':>11} {'fall %':>7} {'energy J':>9} {'NaN':>4}")
-    lines = [f"\nrobustness sweep: {c['batch']} envs per cell on {c.get('devices', 1)} device(s), "
+    lines = [f"\nrobustness sweep: {c['batch']} envs per cell on {_devices(c)}, "
              f"{c['distance_m']:g} m on {c['terrain']}, "
              f"{res['physics']['name']} physics ({c['physics_backend']}), seed {c['seed']}", head, "-" * len(head)]
     for r in res["cells"]:
@@ -65,6 +73,10 @@ def plot(res: Dict, png: str) -> List[str]:
             ax.set_xlabel(names[0])
             ax.set_title(label)
             ax.grid(alpha=0.3)
+            if key.endswith("pct"):  # a share: 0-100 %, not autoscaled below zero when every cell reads 0
+                ax.set_ylim(-2, 102)
+            else:
+                ax.set_ylim(bottom=0)
         axs[0].axhline(100 * ENVELOPE_SUCCESS, color="k", lw=0.8, ls="--")
         axs[0].legend()
     else:

@@ -42,6 +42,43 @@ def check_options(entry: Entry, o: types.SimpleNamespace) -> None:
                 resolve(opt.preset, name)
 
 
+# what a long run has kept on disk so far, for the line Ctrl-C prints (`keep`, `hexjax.cli`)
+_KEPT = {"text": ""}
+
+
+def keep(text: str) -> None:
+    """Say what an interrupted run leaves behind and how to resume it (printed if the user presses Ctrl-C)."""
+    _KEPT["text"] = text
+
+
+def kept() -> str:
+    return _KEPT["text"]
+
+
+def write_partial(path: str, payload, text: str) -> None:
+    """Write a resumable run's partial file whole or not at all (a temporary file renamed over it, so an
+    interrupt never leaves half a file), and `keep` `text`."""
+    tmp = path + ".tmp"
+    with open(tmp, "w") as f:
+        json.dump(payload, f, default=float)
+    os.replace(tmp, path)
+    keep(text)
+
+
+def read_partial(path: str, digest: str, key: str, name: str, unit: str, total: int) -> Dict:
+    """The finished pieces (`payload[key]`) a partial file holds for the same run (its `digest`), saying how
+    many of `total` it resumes; {} when there is none or it belongs to another run."""
+    if not path or not os.path.exists(path):
+        return {}
+    with open(path) as f:
+        saved = json.load(f)
+    if saved.get("digest") != digest:
+        return {}
+    done = saved[key]
+    print(f"{name}: resumed {len(done)} of {total} {unit} from {path}", flush=True)
+    return done
+
+
 def write_json(path: str, obj) -> None:
     """`obj` without its `_`-keys (arrays kept for plots) as indented JSON; numpy numbers as floats."""
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
@@ -49,10 +86,39 @@ def write_json(path: str, obj) -> None:
         json.dump({k: v for k, v in obj.items() if not str(k).startswith("_")}, f, indent=2, default=float)
 
 
+# an upper bound of one env's rollout memory: its MJX data (about 48 KB on the obstacle terrains) ten times over,
+# for the constraint solver's temporaries, the scan's carries and the terrain's boxes
+PER_ENV_BYTES = 512 * 1024
+
+
+def available_bytes() -> int:
+    """Memory the batch can use: every local accelerator's limit, or the host's RAM on a CPU."""
+    import jax
+    devs = jax.local_devices()
+    if devs[0].platform != "cpu":
+        return sum(int((d.memory_stats() or {}).get("bytes_limit", 0)) for d in devs)
+    return os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+
+
+def check_batch_memory(o: types.SimpleNamespace) -> None:
+    """One ValueError line when `--batch` (envs a row or cell) cannot fit the device by a generous estimate,
+    before terrains are drawn or anything compiles."""
+    batch = getattr(o, "batch", None)
+    if not isinstance(batch, int) or batch * PER_ENV_BYTES < 2**30:  # under 1 GB: no question
+        return
+    have = available_bytes()
+    need = batch * PER_ENV_BYTES
+    if have and need > have:
+        raise ValueError(f"--batch={batch}: a rollout of that many envs needs about {need / 2**30:,.0f} GiB (an "
+                         f"estimate of {PER_ENV_BYTES // 1024} KiB an env), more than the {have / 2**30:,.0f} GiB "
+                         f"here; lower --batch or run it on a larger device")
+
+
 def run(entry: Entry, o: types.SimpleNamespace) -> Dict[str, Any]:
     """Check, run, report; write `o.json` and plot to `o.png` where the entry has those options. Returns the
     result and prints what was written."""
     check_options(entry, o)
+    check_batch_memory(o)
     preset = None
     names = {opt.name for opt in entry.options}
     if "physics" in names and "against" not in names:  # `hexjax fidelity` names its two presets itself
@@ -76,6 +142,9 @@ def run(entry: Entry, o: types.SimpleNamespace) -> Dict[str, Any]:
     if getattr(o, "json", ""):
         write_json(o.json, res)
         written.append(o.json)
+        lead = not isinstance(res, dict) or res.get("process", 0) == 0  # the process that keeps the partial file
+        if lead and os.path.exists(o.json + ".partial.json"):  # the finished pieces are in the result now
+            os.remove(o.json + ".partial.json")
     for w in written:
         print(f"wrote {w}")
     return res

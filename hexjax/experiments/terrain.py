@@ -32,10 +32,13 @@ def draw_terrain(preset: str, seed: int, png: str, difficulties: Sequence[float]
                      "ground_z": float(t.ground_z), "top_cm": float(maps[-1].max()),
                      "bottom_cm": float(maps[-1].min())})
     lo, hi = min(m.min() for m in maps), max(m.max() for m in maps)
+    # matplotlib's "terrain" ends in white, the page's colour: stop it at 85 % so the highest ground shows
+    from matplotlib.colors import LinearSegmentedColormap
+    cmap = LinearSegmentedColormap.from_list("terrain_no_white", plt.get_cmap("terrain")(np.linspace(0.0, 0.85, 256)))
     aspect = (yr[1] - yr[0]) / (xr[1] - xr[0])
     fig, axs = plt.subplots(len(specs), 1, figsize=(10, len(specs) * (10 * aspect + 0.6) + 0.6), squeeze=False)
     for ax, h, spec, row in zip(axs[:, 0], maps, specs, rows):
-        im = ax.imshow(h.T, origin="lower", extent=(*xr, *yr), cmap="terrain", aspect="equal", vmin=lo,
+        im = ax.imshow(h.T, origin="lower", extent=(*xr, *yr), cmap=cmap, aspect="equal", vmin=lo,
                        vmax=hi if hi > lo else lo + 1)
         fig.colorbar(im, ax=ax, label="height (cm)", shrink=0.8)
         ax.add_patch(plt.Rectangle((-0.1, -0.05), 0.2, 0.1, fill=False, ec="k", lw=1.5))

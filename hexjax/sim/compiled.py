@@ -51,6 +51,21 @@ class CompileStats:
     source: str = "process"
 
 
+_SAID = {"compiling": False}
+
+
+def _say_compiling() -> None:
+    """One line, the first time a process compiles a program, so the first minute of a command is not a silent
+    0 % bar; a progress bar drawn meanwhile is redrawn below it."""
+    if _SAID["compiling"]:
+        return
+    _SAID["compiling"] = True
+    from tqdm.auto import tqdm
+    where = cache.cache_dir()
+    after = f"cached after, in {where}" if where else "the compilation cache is off"
+    tqdm.write(f"hexjax: compiling (about a minute the first time on 2 CPU cores; {after})", file=sys.stderr)
+
+
 def signature(args):
     """The tree structure, shapes, dtypes and shardings of `args`: what selects an executable."""
     leaves, tree = jax.tree_util.tree_flatten(args)
@@ -208,6 +223,8 @@ class Compiled:
         leaves, in_tree = jax.tree_util.tree_flatten(args)
         path = self._path(sig)
         exe, source = None, "disk"
+        if path is None or not path.exists():
+            _say_compiling()
         with cache.rare_collections():
             if path is not None and path.exists():
                 exe = self._load(path, leaves)

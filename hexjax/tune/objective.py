@@ -41,8 +41,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
-from hexjax.control.cpg import CPGController
-from hexjax.control.tactile import TactileGaitController
+from hexjax.control.registry import CONTROLLERS, make_controller
 from hexjax.sim.compiled import arrays_digest
 from hexjax.sim.config import PhysicsConfig, RolloutConfig, physics_for
 from hexjax.sim.rollout import rollout_function
@@ -52,7 +51,6 @@ from hexjax.tune.space import ParamSpace
 from hexjax.world.presets import get_robot
 from hexjax.world.terrain import pad_terrain, sample
 
-ROBOTS = {"tactile": "luneckas2020", "cpg": "yu2019"}
 
 
 def travel_errors(summary, distance: float):
@@ -92,7 +90,7 @@ class Problem:
     @classmethod
     def build(cls, cfg: TuneConfig) -> "Problem":
         cfg.validate()
-        robot = get_robot(ROBOTS[cfg.controller])
+        robot = get_robot(CONTROLLERS[cfg.controller].robot)
         train_ctrl, params0, duration = _controller(cfg, robot, smooth=True)
         eval_ctrl, eval_params0, _ = _controller(cfg, robot, smooth=False)
         space = cfg.space()
@@ -277,10 +275,8 @@ def _controller(cfg: TuneConfig, robot, smooth: bool):
     """(controller, starting params = the papers' hand rules, rollout seconds)."""
     st = smooth and cfg.gates == "straight_through"
     if cfg.controller == "tactile":
-        c = TactileGaitController(robot, gait=cfg.gait, max_obstacle_height=cfg.max_obstacle_height, smooth=smooth,
-                                  straight_through=st)
-        ncyc, dur = c.duration_for(cfg.distance)
-        c = dataclasses.replace(c, n_cycles=ncyc)
+        c, dur = make_controller("tactile", robot, gait=cfg.gait, max_obstacle_height=cfg.max_obstacle_height,
+                                 smooth=smooth, straight_through=st).for_distance(cfg.distance)
         p = c.default_params()
         if cfg.temperature is not None:
             p = p.replace(temperature=jnp.float32(cfg.temperature))
@@ -288,7 +284,7 @@ def _controller(cfg: TuneConfig, robot, smooth: bool):
             hi = dict(cfg.space().bounds)["swing_time"].hi
             dur = dur * hi / float(p.swing_time)
         return c, p, dur
-    c = CPGController(robot, gait=cfg.gait, smooth=smooth, straight_through=st)
+    c = make_controller("cpg", robot, gait=cfg.gait, smooth=smooth, straight_through=st)
     p = c.default_params()
     if cfg.temperature is not None:
         p = p.replace(temp_force=jnp.float32(cfg.temperature))

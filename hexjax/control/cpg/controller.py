@@ -89,6 +89,13 @@ class CPGController(Controller):
             searching=jnp.asarray(float(self.searching)), smooth=jnp.asarray(float(self.smooth)),
             walk_on=jnp.asarray(0.0))
 
+    def for_distance(self, distance: float, params=None):
+        """No stop (the CPG walks on): `distance` at the nominal speed, one stroke a leader period
+        2 pi / omega_1, plus a period to start."""
+        p = params or self.default_params()
+        period = 2 * math.pi / float(p.net.omega[0])
+        return self, distance / (float(p.step_length) / period) + period
+
     def validate_params(self, p: CPGParams) -> None:
         """Host-side checks on concrete params, before tracing; names the field and value (`checks.py`)."""
         check_params(self.robot, self.stance_radial, p)

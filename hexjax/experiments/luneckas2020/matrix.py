@@ -33,6 +33,7 @@ from hexjax.experiments.luneckas2020.dataset import concat_datasets, save_datase
 from hexjax.experiments.luneckas2020.walks import (DISTANCES, GAITS, METHODS, STRIKE_GAP, STUCK_RATIO, STUCK_WINDOW,
                                                    errors_from, readout_index, robot_width, simulate_gait,
                                                    torso_strikes)
+from hexjax.experiments.runner import write_partial
 from hexjax.sim.physics import get_physics
 from hexjax.world.presets import get_robot
 from hexjax.world.terrain import LUNECKAS2020_CATEGORIES
@@ -149,12 +150,10 @@ def run_luneckas2020(n: int = 16, seed: int = 0, gaits: Sequence[str] = GAITS,
                 sequences_from_runs(ctrl, params, terrain, s, groups, gait, d_max, width))
         elif partial:
             kept[gait] = {part: res[part][gait] for part in ("calibration", "cells", "model", "timing")}
-            with open(partial, "w") as f:
-                json.dump({"key": key, "gaits": kept}, f)
+            write_partial(partial, {"key": key, "gaits": kept}, f"{len(kept)} of {len(gaits)} gaits kept in "
+                          f"{partial}; the same command resumes after them")
     res["summary"] = _summary(res)
-    if partial and os.path.exists(partial):
-        os.remove(partial)  # the whole matrix is in the result
-    return res
+    return res  # the runner removes the partial file once the JSON holds the whole matrix
 
 
 def _causes(dx, dy, bad, stuck, struck, d) -> Dict:

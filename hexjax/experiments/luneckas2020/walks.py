@@ -4,7 +4,6 @@ the experiment matrix and the error predictor's dataset."""
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from typing import Sequence
 
@@ -13,6 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
+from hexjax.control.registry import make_controller
 from hexjax.control.tactile import TactileGaitController, overcome_height
 from hexjax.experiments.metrics import pose_errors
 from hexjax.sim.config import RolloutConfig
@@ -91,9 +91,7 @@ def simulate_gait(gait: str, n: int, seed: int = 0, distance: float = 2.0,
     robot = get_robot(robot_name)
     specs = {c: get_terrain(c, length=distance + 0.3) for c in categories}
     m = max([s.max_boxes for s in specs.values()] + [1])
-    ctrl = TactileGaitController(robot, gait=gait)
-    ncyc, dur = ctrl.duration_for(distance)
-    ctrl = dataclasses.replace(ctrl, n_cycles=ncyc)
+    ctrl, dur = make_controller("tactile", robot, gait=gait).for_distance(distance)
     terrs, params, groups = [], [], []
     base = jax.random.PRNGKey(seed)
     for i, c in enumerate(categories):

@@ -244,6 +244,8 @@ def plot_closed_loop(res: Dict, png: str, k: int = 6) -> None:
         ax.set_aspect("equal")
         ax.set_xlim(-0.4, 2.4)
         ax.set_ylim(-0.9, 0.9)
+        ax.set_xlabel("x (m)")
+        ax.set_ylabel("y (m)")
         ax.set_title(f"field {i}{' (straight line blocked)' if res['_blocked'][i] else ''}: "
                      f"{'ok' if ok[i] else 'FAILED'}", fontsize=9)
         if slot == 0:

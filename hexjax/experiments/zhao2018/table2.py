@@ -54,13 +54,14 @@ def plot_zhao2018(result: Dict, png: str) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     fig, ax = plt.subplots(figsize=(5, 8))
-    for x, y, rad in result["obstacles"]:
-        ax.add_patch(plt.Circle((x, y), rad, color="tab:red", alpha=0.5))
+    for i, (x, y, rad) in enumerate(result["obstacles"]):
+        ax.add_patch(plt.Circle((x, y), rad, color="tab:red", alpha=0.5, label="obstacles" if i == 0 else None))
     path = np.asarray(result["path"])
     offs, radii = np.asarray(result["robot_circles"]["offsets"]), np.asarray(result["robot_circles"]["radii"])
-    for q in path:
-        for o, rr in zip(offs, radii):
-            ax.add_patch(plt.Circle(q + o, rr, fill=False, color="tab:blue", lw=0.4, alpha=0.5))
+    for j, q in enumerate(path):
+        for k, (o, rr) in enumerate(zip(offs, radii)):
+            ax.add_patch(plt.Circle(q + o, rr, fill=False, color="tab:blue", lw=0.4, alpha=0.5,
+                                    label="robot circles at each plan cycle" if j == k == 0 else None))
     ax.plot(path[:, 0], path[:, 1], "-o", color="k", ms=3, label="hexjax plan cycles")
     t2 = np.vstack([[0.0, 0.0], TABLE2])
     ax.plot(t2[:, 0], t2[:, 1], "--s", color="tab:green", ms=3, label="Table 2 (recorded)")

@@ -1,0 +1,73 @@
+"""The controllers by name: one table that every command, experiment, the tuner and the scripts build from.
+
+    make_controller("tactile", robot, gait="wave")      -> TactileGaitController(robot, gait="wave")
+    ctrl, seconds = ctrl.for_distance(1.0)               the controller's own rule for a walk of 1 m
+
+Each entry names the factory, the robot preset it was written for (the paper's robot) and one line on what it
+is. The walk-length rule lives on the controller (`Controller.for_distance`), so a new controller brings its
+own and no caller keeps a chain of `isinstance` tests.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Callable, Dict, Tuple
+
+from hexjax.control.base import Controller
+
+
+@dataclasses.dataclass(frozen=True)
+class ControllerEntry:
+    make: Callable[..., Controller]  # make(robot, gait=..., **fields) -> controller
+    robot: str  # the robot preset the controller was written for
+    about: str
+
+
+def _gait(robot, gait="tripod", **kw):
+    from hexjax.control.gait import GaitController
+    return GaitController(robot, gait=gait, **kw)
+
+
+def _tactile(robot, gait="tripod", **kw):
+    from hexjax.control.tactile import TactileGaitController
+    return TactileGaitController(robot, gait=gait, **kw)
+
+
+def _cpg(robot, gait="tripod", **kw):
+    from hexjax.control.cpg import CPGController
+    return CPGController(robot, gait=gait, **kw)
+
+
+def _avoid(robot, gait="tripod", **kw):
+    from hexjax.control.avoid_gait import AvoidGaitController
+    return AvoidGaitController(robot, gait=gait, **kw)
+
+
+def _perceive(robot, gait="tripod", sensor="kinect_v1", **kw):
+    from hexjax.control.perceive_gait import PerceivingAvoidGait
+    from hexjax.perceive.sensors import get_sensor
+    return PerceivingAvoidGait(robot, gait=gait, sensor=get_sensor(sensor) if isinstance(sensor, str) else sensor,
+                               **kw)
+
+
+CONTROLLERS: Dict[str, ControllerEntry] = {
+    "gait": ControllerEntry(_gait, "luneckas2020", "the Luneckas 2020 open-loop gait (Eqs. 2-4)"),
+    "tactile": ControllerEntry(_tactile, "luneckas2020", "the gait with Luneckas 2020's tactile obstacle "
+                               "overcoming (Eqs. 5-7)"),
+    "cpg": ControllerEntry(_cpg, "yu2019", "the Yu 2019 CPG with its elevator and searching reflexes"),
+    "avoid": ControllerEntry(_avoid, "luneckas2020", "the gait steered by the Zhao 2018 avoidance planner round "
+                             "the terrain's boxes"),
+    "perceive": ControllerEntry(_perceive, "luneckas2020", "the avoiding gait steered by what a range sensor "
+                                "perceives (Kinect V1 preset: scan, grid map, RANSAC, circles)"),
+}
+
+
+def make_controller(name: str, robot, gait: str = "tripod", **fields) -> Controller:
+    """The controller `name` of `CONTROLLERS` for `robot` (a `RobotSpec`), with its other fields set."""
+    if name not in CONTROLLERS:
+        raise ValueError(f"controller={name!r}: use one of {', '.join(CONTROLLERS)}")
+    return CONTROLLERS[name].make(robot, gait=gait, **fields)
+
+
+def controller_names() -> Tuple[str, ...]:
+    return tuple(CONTROLLERS)
