@@ -111,8 +111,8 @@ def build_parser(argv) -> argparse.ArgumentParser:
 
 
 def _interrupted_line(name: str) -> str:
-    from hexjax.experiments import runner
-    return f"\n{name}: interrupted; {runner.kept() or 'nothing of this run was kept on disk'}"
+    from hexjax.interrupt import kept
+    return f"\n{name}: interrupted; {kept() or 'nothing of this run was kept on disk'}"
 
 
 def _exit_on_ctrl_c(name: str) -> None:

@@ -84,9 +84,12 @@ def test_ctrl_c_ends_a_command_at_once_in_one_line(tmp_path):
     import sys
     import time
     env = dict(os.environ, HEXJAX_CACHE_DIR=str(tmp_path / "cache"))  # a compile long enough to interrupt
-    p = subprocess.Popen([sys.executable, "-m", "hexjax.cli", "evaluate", "--batch", "1", "--categories", "flat"],
-                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
-                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    # SIGINT back to its default first: a test run started in the background inherits it ignored
+    start = ("import os, signal, sys; signal.signal(signal.SIGINT, signal.SIG_DFL); "
+             "os.execv(sys.executable, [sys.executable, '-m', 'hexjax.cli', 'evaluate', '--batch', '1', "
+             "'--categories', 'flat'])")
+    p = subprocess.Popen([sys.executable, "-c", start], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         env=env)
     header = p.stdout.readline()  # the physics line: JAX is loaded and the run has begun
     assert header.startswith("physics:"), header
     time.sleep(1.0)

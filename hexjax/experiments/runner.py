@@ -11,6 +11,7 @@ import types
 from typing import Any, Dict, List
 
 from hexjax.experiments.registry import Entry
+from hexjax.interrupt import keep, kept  # noqa: F401 (kept: what the command line reads on Ctrl-C)
 from hexjax.world.files import resolve
 
 
@@ -40,19 +41,6 @@ def check_options(entry: Entry, o: types.SimpleNamespace) -> None:
         if opt.preset and v:
             for name in (v if isinstance(v, list) else [v]):
                 resolve(opt.preset, name)
-
-
-# what a long run has kept on disk so far, for the line Ctrl-C prints (`keep`, `hexjax.cli`)
-_KEPT = {"text": ""}
-
-
-def keep(text: str) -> None:
-    """Say what an interrupted run leaves behind and how to resume it (printed if the user presses Ctrl-C)."""
-    _KEPT["text"] = text
-
-
-def kept() -> str:
-    return _KEPT["text"]
 
 
 def write_partial(path: str, payload, text: str) -> None:

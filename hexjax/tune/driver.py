@@ -17,6 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
+from hexjax.interrupt import keep
 from hexjax.sim.compiled import Compiled
 from hexjax.tune.config import TuneConfig
 from hexjax.tune.objective import Problem, evaluate_held_out
@@ -170,6 +171,7 @@ def drive(problem: Problem, out_dir: str, method: str, digest: str, state, param
         entry.update(times())
         log.append(entry)
         save_checkpoint(ckpt, state, step, log, digest)
+        keep(f"{method} step {step} of {n_steps} kept in {ckpt}; the same command resumes from it")
         bar.set_postfix(train=f"{fields['train_objective']:.3f}", held=f"{_last_held(log):.3f}",
                         s=f"{entry['train_s']:.0f}")
         bar.update(1)
