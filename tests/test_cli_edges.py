@@ -49,16 +49,20 @@ def test_the_sweep_says_cores_on_a_cpu():
     assert _devices({"devices": 1, "backend": "gpu"}) == "1 GPU"
 
 
-def test_a_finished_run_leaves_no_partial_file(tmp_path, monkeypatch):
+def test_a_finished_run_leaves_no_partial_file(tmp_path, monkeypatch, capsys):
     """The runner removes `<json>.partial.json` once the JSON holds the whole result; a resumed run says
     how many pieces it took from the partial file."""
     from hexjax.experiments import runner
+    from hexjax.interrupt import kept
     path = str(tmp_path / "r.json")
     runner.write_partial(path + ".partial.json", {"digest": "d", "cells": {"a": 1, "b": 2}}, "2 of 3 cells kept")
-    assert runner.kept() == "2 of 3 cells kept"
+    assert kept() == "2 of 3 cells kept"
     assert runner.read_partial(path + ".partial.json", "other", "cells", "x", "cells", 3) == {}
     done = runner.read_partial(path + ".partial.json", "d", "cells", "robustness", "cells", 3)
     assert done == {"a": 1, "b": 2}
+    # counting only the pieces this run asks for (a run of fewer gaits than the kept file holds)
+    runner.read_partial(path + ".partial.json", "d", "cells", "luneckas2020", "gaits", 1, ["b"])
+    assert capsys.readouterr().out.splitlines()[-1].startswith("luneckas2020: resumed 1 of 1 gaits")
 
     class Mod:
         @staticmethod

@@ -11,7 +11,7 @@ own and no caller keeps a chain of `isinstance` tests.
 from __future__ import annotations
 
 import dataclasses
-from typing import Callable, Dict, Tuple
+from typing import Callable, Dict
 
 from hexjax.control.base import Controller
 
@@ -67,7 +67,3 @@ def make_controller(name: str, robot, gait: str = "tripod", **fields) -> Control
     if name not in CONTROLLERS:
         raise ValueError(f"controller={name!r}: use one of {', '.join(CONTROLLERS)}")
     return CONTROLLERS[name].make(robot, gait=gait, **fields)
-
-
-def controller_names() -> Tuple[str, ...]:
-    return tuple(CONTROLLERS)

@@ -11,7 +11,7 @@ import types
 from typing import Any, Dict, List
 
 from hexjax.experiments.registry import Entry
-from hexjax.interrupt import keep, kept  # noqa: F401 (kept: what the command line reads on Ctrl-C)
+from hexjax.interrupt import keep
 from hexjax.world.files import resolve
 
 
@@ -53,9 +53,10 @@ def write_partial(path: str, payload, text: str) -> None:
     keep(text)
 
 
-def read_partial(path: str, digest: str, key: str, name: str, unit: str, total: int) -> Dict:
+def read_partial(path: str, digest: str, key: str, name: str, unit: str, total: int, wanted=None) -> Dict:
     """The finished pieces (`payload[key]`) a partial file holds for the same run (its `digest`), saying how
-    many of `total` it resumes; {} when there is none or it belongs to another run."""
+    many of `total` it resumes (of the pieces named in `wanted`, where given); {} when there is none or it
+    belongs to another run."""
     if not path or not os.path.exists(path):
         return {}
     with open(path) as f:
@@ -63,7 +64,8 @@ def read_partial(path: str, digest: str, key: str, name: str, unit: str, total: 
     if saved.get("digest") != digest:
         return {}
     done = saved[key]
-    print(f"{name}: resumed {len(done)} of {total} {unit} from {path}", flush=True)
+    n = len(done) if wanted is None else sum(w in done for w in wanted)
+    print(f"{name}: resumed {n} of {total} {unit} from {path}", flush=True)
     return done
 
 

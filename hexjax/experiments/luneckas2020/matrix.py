@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import time
 from typing import Dict, Sequence
 
@@ -33,7 +32,7 @@ from hexjax.experiments.luneckas2020.dataset import concat_datasets, save_datase
 from hexjax.experiments.luneckas2020.walks import (DISTANCES, GAITS, METHODS, STRIKE_GAP, STUCK_RATIO, STUCK_WINDOW,
                                                    errors_from, readout_index, robot_width, simulate_gait,
                                                    torso_strikes)
-from hexjax.experiments.runner import write_partial
+from hexjax.experiments.runner import read_partial, write_partial
 from hexjax.sim.physics import get_physics
 from hexjax.world.presets import get_robot
 from hexjax.world.terrain import LUNECKAS2020_CATEGORIES
@@ -88,13 +87,7 @@ def run_luneckas2020(n: int = 16, seed: int = 0, gaits: Sequence[str] = GAITS,
     # the torso-strike and slip readouts were added is run again)
     key = json.dumps({k: res["config"][k] for k in ("n", "seed", "distances_m")} | {"physics": res["physics"],
                      "readouts": "causes, torso strikes, foot slip"}, sort_keys=True)
-    kept = {}
-    if partial and not keep_sequences and os.path.exists(partial):
-        with open(partial) as f:
-            saved = json.load(f)
-        if saved.get("key") == key:
-            kept = saved["gaits"]
-            print(f"luneckas2020: resumed {len([g for g in gaits if g in kept])} of {len(gaits)} gaits from {partial}")
+    kept = {} if keep_sequences else read_partial(partial, key, "gaits", "luneckas2020", "gaits", len(gaits), gaits)
     for gait in gaits:
         if gait in kept:
             for part in ("calibration", "cells", "model", "timing"):
@@ -150,7 +143,7 @@ def run_luneckas2020(n: int = 16, seed: int = 0, gaits: Sequence[str] = GAITS,
                 sequences_from_runs(ctrl, params, terrain, s, groups, gait, d_max, width))
         elif partial:
             kept[gait] = {part: res[part][gait] for part in ("calibration", "cells", "model", "timing")}
-            write_partial(partial, {"key": key, "gaits": kept}, f"{len(kept)} of {len(gaits)} gaits kept in "
+            write_partial(partial, {"digest": key, "gaits": kept}, f"{len(kept)} of {len(gaits)} gaits kept in "
                           f"{partial}; the same command resumes after them")
     res["summary"] = _summary(res)
     return res  # the runner removes the partial file once the JSON holds the whole matrix
