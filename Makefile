@@ -23,9 +23,9 @@ setup: $(BIN)/hexjax
 demo: setup
 	$(BIN)/hexjax evaluate --gait tripod --distance 1.0 --batch 8 --json out/evaluate_tripod.json --png out/evaluate_tripod.png
 
-# two workers (one per core of the reference machine), the slowest tests handed out first and one at a time
+# two workers (one per core of the reference machine), the costliest tests (`@pytest.mark.cost`) handed out first and one at a time
 # (tests/conftest.py's scheduler: xdist's default hands each worker a block of consecutive tests, which gave one
-# worker every slow test, 27 min against 19; tests sharing an expensive module fixture go out together);
+# worker every slow test, 27 min against 19; a test class goes to one worker whole, so a fixture its tests share is built once);
 # the slowest 15 are listed at the end;
 # HEXJAX_REQUIRE_WARP: the test extra installs warp-lang, so its absence fails instead of skipping;
 # PYTHONDONTWRITEBYTECODE emptied: where the shell sets it, each test process (the two workers and the CLI

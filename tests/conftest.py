@@ -35,82 +35,129 @@ gc.set_threshold(*TRACE_GC_THRESHOLD)
 
 _PEAKS = []
 
-# The slowest tests on 2 cores with a cold cache (compile-bound), slowest first: handed out first, they
-# keep the two workers busy to the end instead of leaving one of them a long test at the finish. A test of
-# SHARED_FIXTURES takes its group along with it.
-SLOW_FIRST = ("test_validated_mjx_meets_the_reference_on_a_paired_matrix", "test_every_backend_honours_the_same_draws", "test_cpg_gradient_matches_central_differences",
-              "test_families_walkable_at_zero_and_harder_with_difficulty",
-              "test_tuning_is_deterministic_and_resumes", "test_two_processes_give_the_per_env_numbers_of_one",
-              "test_brax_ppo_trains", "test_gradient_matches_central_differences_per_group",
-              "test_parallel_windows_give_the_scans_gradient", "test_tuner_forward_mode_gives_reverse_modes_gradient",
-              "test_forward_mode_gradient_equals_reverse_mode",
-              "test_converged_jacobian_matches_unrolled_and_central_differences",
-              "test_es_baseline_improves", "test_smooth_rollout_tends_to_hard_rollout",
-              "test_evaluate_obstacles_lose_distance",
-              "test_a_program_lowers_the_same_whatever_the_process_traced_before",
-              "test_sharded_rollout_matches_unsharded",
-              "test_planner_steers_the_mjx_robot", "test_planned_motion_crosses_the_patch",
-              "test_tripod_tetrapod_wave_walk", "test_flat_walk_straight_1m", "test_a_compiled_rollout_is_kept",
-              "test_toe_forces_point_up", "test_mjx_pad_touch", "test_warp_backend_walks_like_mjx",
-              "test_mujoco_c_backend_walks_like_mjx")
+# The order and grouping of the tests, from marks on the tests themselves (nothing here names a test):
+# - `@pytest.mark.cost(seconds)`: about how long the test takes on 2 cores from a cold cache, compile included.
+#   Tests are handed out costliest first, one at a time, so neither worker is left alone with a long test at the
+#   end (xdist's default hands each worker a block of consecutive tests: one worker got every slow one, 27 min
+#   against 19). Unmarked tests follow in collection order.
+# - A test class is one unit of work: its tests go to one worker together, so a module fixture they share (the
+#   perturbed walks of tests/test_randomization.py, say) is built once. xdist's own `xdist_group` mark does not
+#   group with pytest 9.2 (xdist 3.8 renames `item._nodeid`, which pytest 9 no longer reads).
+
+def pytest_configure(config):
+    config.addinivalue_line("markers", "cost(seconds): about how long the test takes on 2 cores from a cold cache "
+                                       "(compile included); the costliest are handed out first")
 
 
-# Tests that share an expensive module-scoped fixture, by test function name -> the fixture. pytest-xdist hands
-# each group to one worker, which runs it in one go, so the fixture is built once (handed out one test at a
-# time, as the other tests are, the perturbed walks were built four times: 980 s of a cold run).
-# xdist's own `xdist_group` marker has no effect with pytest 9.2 (xdist 3.8 renames `item._nodeid`, which
-# pytest 9 no longer reads), hence this list and the scheduler below.
-SHARED_FIXTURES = {
-    "test_every_backend_honours_the_same_draws": "perturbed_walks",
-    "test_same_key_gives_bit_identical_results": "perturbed_walks",
-    "test_each_perturbation_does_what_it_should": "perturbed_walks",
-    "test_mujoco_c_backend_walks_like_mjx": "mjx_run",
-    "test_warp_backend_walks_like_mjx": "mjx_run",
-    "test_converged_jacobian_matches_unrolled_and_central_differences": "standing",
-    "test_forces_and_acceleration_jacobian_against_central_differences_and_unrolled": "standing",
-    "test_integrator_rule_keeps_mjx_values_and_derivative": "standing",
-    "test_matrix_free_rows_match_mjx_with_their_derivative": "standing",
-}
-
-
-def pytest_xdist_make_scheduler(config, log):
-    """One test per unit of work, slowest first (the collection order), except the groups of SHARED_FIXTURES,
-    each one unit; a worker holds at most about three tests it has not started."""
-    from xdist.scheduler import LoadScopeScheduling
-
-    class SharedFixtureScheduling(LoadScopeScheduling):
-        def _split_scope(self, nodeid):
-            name = nodeid.split("::")[-1].split("[")[0]
-            return SHARED_FIXTURES.get(name, nodeid)
-
-        def remove_node(self, node):
-            """A worker left: if it crashed, the test it was running (reported as failed by xdist) and the tests
-            it had not started go back in the queue, the crashed test marked done. xdist 3.8 re-queues every
-            unit the worker was ever given, finished ones too; a replacement worker handed a finished unit has
-            nothing to run, never reports back and is never given the rest, so the run waited at 0 % CPU until
-            CI's limit. It also runs the crashed test again, up to 8 times for a crash that repeats."""
-            workload = self.assigned_work.pop(node)
-            pending = [nid for unit in workload.values() for nid, done in unit.items() if not done]
-            if not pending:
-                return None
-            crashed = pending[0]  # a worker runs its tests in the order it got them
-            for scope, unit in workload.items():
-                if crashed in unit:
-                    unit[crashed] = True
-                if not all(unit.values()):
-                    self.workqueue[scope] = unit
-            for other in self.assigned_work:
-                self._reschedule(other)
-            return crashed
-
-    return SharedFixtureScheduling(config, log)
+def _scope(nodeid):
+    """The unit of work a test belongs to: its class, or the test itself."""
+    parts = nodeid.split("::")
+    return "::".join(parts[:2]) if len(parts) > 2 else nodeid
 
 
 def pytest_collection_modifyitems(items):
-    def rank(item):
-        hit = [i for i, name in enumerate(SLOW_FIRST) if name in item.nodeid]
-        return hit[0] if hit else len(SLOW_FIRST)
-    items.sort(key=rank)  # stable: the rest keep their order
+    cost = {}
+    for item in items:
+        mark = item.get_closest_marker("cost")
+        scope = _scope(item.nodeid)
+        cost[scope] = max(cost.get(scope, 0.0), float(mark.args[0]) if mark else 0.0)
+    items.sort(key=lambda item: -cost[_scope(item.nodeid)])  # stable: a class stays together, the rest in order
+
+
+def pytest_xdist_make_scheduler(config, log):
+    return CostFirstScheduling(config, log)
+
+
+class CostFirstScheduling:
+    """A pytest-xdist scheduler (its `Scheduling` protocol, xdist/scheduler/protocol.py): the collection's units
+    of work (a class, or one test) handed out in collection order (costliest first, above), a unit at a time, each
+    worker kept at two or more tests it has not finished (a worker runs a test once it knows the next one, or has
+    been told to stop). A worker that crashes fails the test it was running; the tests it had not started go back
+    to the front of the queue. (xdist 3.8's own load-scope scheduler re-queued every unit the crashed worker was
+    ever given, finished ones too: the replacement worker was handed work with nothing left to run and the run
+    waited until CI's limit; tests/test_runtime.py.)"""
+
+    def __init__(self, config, log):
+        from xdist.workermanage import parse_tx_spec_config
+        self.numnodes = len(parse_tx_spec_config(config))
+        self.log = log
+        self.collections = {}  # every worker's collection, the ones that left included
+        self.collection = None
+        self.pending = {}  # worker -> the collection indices it was given and has not finished, in order
+        self.queue = []  # units of work not handed out: lists of collection indices
+
+    @property
+    def nodes(self):
+        return list(self.pending)
+
+    @property
+    def collection_is_completed(self):
+        return len(self.collections) >= self.numnodes
+
+    @property
+    def tests_finished(self):
+        return (self.collection_is_completed and not self.queue
+                and all(len(p) < 2 for p in self.pending.values()))
+
+    @property
+    def has_pending(self):
+        return bool(self.queue) or any(self.pending.values())
+
+    def add_node(self, node):
+        self.pending[node] = []
+
+    def add_node_collection(self, node, collection):
+        if self.collection is not None and list(collection) != self.collection:
+            self.log(f"worker {node.gateway.id} collected other tests than the first worker; it gets none")
+            return
+        self.collections[node] = list(collection)
+
+    def schedule(self):
+        if self.collection is None:
+            first, *others = self.collections.values()
+            if any(c != first for c in others):
+                self.log("the workers collected different tests: nothing is run")
+                return
+            self.collection = first
+            units = {}
+            for i, nodeid in enumerate(first):
+                units.setdefault(_scope(nodeid), []).append(i)
+            self.queue = list(units.values())
+        for node in self.nodes:
+            self._top_up(node)
+
+    def _top_up(self, node):
+        if node.shutting_down or node not in self.collections:
+            return
+        while self.queue and len(self.pending[node]) < 2:
+            unit = self.queue.pop(0)
+            self.pending[node].extend(unit)
+            node.send_runtest_some(unit)
+        if not self.queue:
+            node.shutdown()
+
+    def mark_test_complete(self, node, item_index, duration=0):
+        self.pending[node].remove(item_index)
+        self._top_up(node)
+
+    def mark_test_pending(self, item):
+        self.queue.insert(0, [self.collection.index(item)])
+        for node in self.nodes:
+            self._top_up(node)
+
+    def remove_pending_tests_from_node(self, node, indices):
+        raise NotImplementedError("work stealing is not used")
+
+    def remove_node(self, node):
+        pending = self.pending.pop(node)  # its collection stays counted: replacements are not waited for
+        if not pending:
+            return None
+        crashed, rest = pending[0], pending[1:]  # a worker runs its tests in the order it got them
+        if rest:
+            self.queue.insert(0, rest)
+        for other in self.nodes:
+            self._top_up(other)
+        return self.collection[crashed]
 
 
 # JAX's own caches are cleared after a module only when the process holds more than this much memory

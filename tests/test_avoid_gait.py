@@ -24,6 +24,7 @@ def _one_block(n=2):
                   valid=jnp.ones((n, 1), bool), lane=jnp.zeros((n, 2, 2)))
 
 
+@pytest.mark.cost(80)
 def test_planner_steers_the_mjx_robot_round_an_obstacle_a_blind_one_hits_it():
     """Acceptance, in small: with the planner the simulated robot reaches the target without touching the
     box on its straight line; with the same planner told of no obstacles it walks into the box."""

@@ -45,12 +45,39 @@ def _agree(ref, out):
     assert not np.asarray(out.nan).any() and not np.asarray(out.fell).any()
 
 
-def test_mujoco_c_backend_walks_like_mjx(mjx_run):
-    out, st = rollout(ROBOT, TERRAIN, CTRL, CTRL.default_params(), SECONDS, jax.random.PRNGKey(1), backend="c",
-                      nthread=2, stats=True)
-    assert st.backend == "c" and st.compile_s > 0 and st.env_steps == 6 * PHYSICS_STEPS
-    np.testing.assert_allclose(np.asarray(out.start_pose), np.asarray(mjx_run.start_pose), atol=5e-3)
-    _agree(mjx_run, out)
+@pytest.mark.cost(45)
+class TestAgainstTheMjxWalk:
+    """The other backends against one MJX walk: one class, so that one worker runs them and the MJX walk is made once
+    (tests/conftest.py's scheduler)."""
+
+    def test_mujoco_c_backend_walks_like_mjx(self, mjx_run):
+        out, st = rollout(ROBOT, TERRAIN, CTRL, CTRL.default_params(), SECONDS, jax.random.PRNGKey(1), backend="c",
+                          nthread=2, stats=True)
+        assert st.backend == "c" and st.compile_s > 0 and st.env_steps == 6 * PHYSICS_STEPS
+        np.testing.assert_allclose(np.asarray(out.start_pose), np.asarray(mjx_run.start_pose), atol=5e-3)
+        _agree(mjx_run, out)
+
+    def test_warp_backend_walks_like_mjx(self, mjx_run):
+        _warp()
+        from hexjax.sim.backends import warp_cpu
+        recorded, replayed = warp_cpu.STATS["recorded"], warp_cpu.STATS["replayed"]
+        walk = lambda: rollout(ROBOT, TERRAIN, CTRL, CTRL.default_params(), SECONDS, jax.random.PRNGKey(1), backend="warp")
+        out = walk()
+        _agree(mjx_run, out)
+        if jax.default_backend() == "cpu":
+            # Warp's step was recorded a few times (once per set of buffers) and replayed at every other physics
+            # step of the walk (one call for all 6 envs) ...
+            new, again = warp_cpu.STATS["recorded"] - recorded, warp_cpu.STATS["replayed"] - replayed
+            assert 0 < new <= 8 and again >= PHYSICS_STEPS - new, (new, again)
+            # ... which changes the speed only: with Warp's Python run at every call the walk is the same bit for bit
+            was, counts = warp_cpu.set_enabled(False), dict(warp_cpu.STATS)
+            try:  # the switch is read when the call runs, so wait for the walk (XLA dispatches it asynchronously)
+                plain = jax.block_until_ready(walk())
+            finally:
+                warp_cpu.set_enabled(was)
+            assert dict(warp_cpu.STATS) == counts, "nothing recorded or replayed while the replay was off"
+            for x, y in zip(jax.tree_util.tree_leaves(out), jax.tree_util.tree_leaves(plain)):
+                np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
 
 
 def test_mujoco_c_ground_plane_sits_at_the_terrains_ground_z():
@@ -78,29 +105,6 @@ def _warp():
         import warp
         return warp
     return pytest.importorskip("warp")
-
-
-def test_warp_backend_walks_like_mjx(mjx_run):
-    _warp()
-    from hexjax.sim.backends import warp_cpu
-    recorded, replayed = warp_cpu.STATS["recorded"], warp_cpu.STATS["replayed"]
-    walk = lambda: rollout(ROBOT, TERRAIN, CTRL, CTRL.default_params(), SECONDS, jax.random.PRNGKey(1), backend="warp")
-    out = walk()
-    _agree(mjx_run, out)
-    if jax.default_backend() == "cpu":
-        # Warp's step was recorded a few times (once per set of buffers) and replayed at every other physics
-        # step of the walk (one call for all 6 envs) ...
-        new, again = warp_cpu.STATS["recorded"] - recorded, warp_cpu.STATS["replayed"] - replayed
-        assert 0 < new <= 8 and again >= PHYSICS_STEPS - new, (new, again)
-        # ... which changes the speed only: with Warp's Python run at every call the walk is the same bit for bit
-        was, counts = warp_cpu.set_enabled(False), dict(warp_cpu.STATS)
-        try:  # the switch is read when the call runs, so wait for the walk (XLA dispatches it asynchronously)
-            plain = jax.block_until_ready(walk())
-        finally:
-            warp_cpu.set_enabled(was)
-        assert dict(warp_cpu.STATS) == counts, "nothing recorded or replayed while the replay was off"
-        for x, y in zip(jax.tree_util.tree_leaves(out), jax.tree_util.tree_leaves(plain)):
-            np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
 
 
 def test_warp_cpu_hessian_launch_gives_the_same_steps():

@@ -5,6 +5,8 @@ import os
 import subprocess
 import sys
 
+import pytest
+
 
 def _run(code, **env):
     e = {k: v for k, v in os.environ.items() if not k.startswith("JAX_") or k == "JAX_PLATFORMS"}
@@ -37,6 +39,7 @@ def test_cache_off_and_jax_imported_first(tmp_path):
     assert late.stdout.strip() == str(tmp_path / "c" / "jax")
 
 
+@pytest.mark.cost(60)
 def test_a_compiled_rollout_is_kept_and_reloaded_by_the_next_process(tmp_path):
     """The second process neither traces nor compiles the rollout: it loads the kept program
     (hexjax.sim.compiled) and the persistent XLA cache, and gives the same numbers. (The programs folder is
@@ -95,6 +98,7 @@ def module(n):
 """
 
 
+@pytest.mark.cost(90)
 def test_a_program_lowers_the_same_whatever_the_process_traced_before():
     """The CPG's evaluation rollout of `cpg_step_ditch` for 5 terrains lowers to another module in a process that
     traced it for 6 terrains first: jitted callees traced for the first program come back from JAX's caches with

@@ -11,6 +11,7 @@ from hexjax.cli import main
 from hexjax.experiments.registry import commands, experiments
 
 
+@pytest.mark.cost(95)
 def test_evaluate_obstacles_lose_distance(tmp_path, capsys):
     """Without the tactile method the robot loses distance on obstacle terrain, the table shows it (with its
     legend), and nothing NaNs. One compile serves both categories (padded to one box count)."""

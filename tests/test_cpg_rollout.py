@@ -20,6 +20,7 @@ def _stack(params_list):
     return jax.tree_util.tree_map(lambda *a: jnp.stack(a), *params_list)
 
 
+@pytest.mark.cost(70)
 def test_tripod_tetrapod_wave_walk_1m_on_flat_ground():
     """Eq. 16 gaits (gamma = 2, 3, 6), two robots each with random headings, one compiled rollout (the
     gait is a traced parameter): every robot covers >= 1 m in 66 s without falling or NaN. Nominal
@@ -36,6 +37,7 @@ def test_tripod_tetrapod_wave_walk_1m_on_flat_ground():
     assert advance[0] > advance[1] > advance[2] and advance[3] > advance[4] > advance[5]
 
 
+@pytest.mark.cost(55)
 def test_toe_forces_point_up_on_terrain_boxes():
     """The robot stands on a slab (a terrain box; the ditch terrain's ground plane is 18 mm lower): the
     toe forces it reads are upward and carry its weight (MJX orders box pairs the other way round from
@@ -52,6 +54,7 @@ def test_toe_forces_point_up_on_terrain_boxes():
     np.testing.assert_allclose(total[-10:].mean(), weight, rtol=0.15)
 
 
+@pytest.mark.cost(100)
 def test_smooth_rollout_tends_to_hard_rollout():
     """Smooth gates with temperatures scaled by 1 ... 1e-6 against the hard controller, 10 s on flat ground, in
     one compiled, batched rollout (the form is the `smooth` param): the smooth runs' advance and heading

@@ -8,6 +8,7 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 
 from conftest import TEST_XLA_FLAGS
 
@@ -34,6 +35,7 @@ def _cells(path):
     return res, {(r["controller"], r["friction"]): r["per_env"] for r in res["cells"]}
 
 
+@pytest.mark.cost(180)
 def test_two_processes_give_the_per_env_numbers_of_one(tmp_path):
     cmd = [sys.executable, "-m", "hexjax.cli"] + SWEEP
     one = tmp_path / "one.json"

@@ -16,6 +16,7 @@ def _options(**kw):
     return types.SimpleNamespace(**o)
 
 
+@pytest.mark.cost(500)
 def test_validated_mjx_meets_the_reference_on_a_paired_matrix():
     """64 envs per cell, the open-loop gait 0.25 m on flat ground and on low-small obstacles at friction 0.2 and
     0.6 (the frictions where 2 Newton iterations read 12 % against converged MuJoCo's 43 %), both engines on the

@@ -23,6 +23,7 @@ from hexjax.tune.objective import Problem
 from hexjax.world.presets import get_terrain, luneckas2020
 
 
+@pytest.mark.cost(130)
 def test_forward_mode_gradient_equals_reverse_mode():
     """The tactile gradient check's setting on flat ground (2 envs, 0.4 s after 0.1 s of settling, windows of 4
     control steps, implicit solve, no bound): the derivatives of sum(travel x + 0.3 travel y) along three random
@@ -58,6 +59,7 @@ def test_forward_mode_gradient_equals_reverse_mode():
     assert np.max(np.abs(got - want)) <= 1e-3 * scale, (got, want)
 
 
+@pytest.mark.cost(140)
 def test_tuner_forward_mode_gives_reverse_modes_gradient():
     """The tuner's step (`Problem.gradient_program`) with `backward: forward` against `backward: sequential`, both
     without a bound: the tactile_tripod objective over 2 terrains, a 0.6 s walk after 0.1 s of settling (three 0.2 s

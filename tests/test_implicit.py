@@ -63,61 +63,149 @@ def _kept(fn, d, *tag):
     return Compiled(jax.jit(fn), static=("test_implicit",) + tag + (ITERATIONS, ROBOT, arrays_digest(d)))
 
 
-def test_converged_jacobian_matches_unrolled_and_central_differences(standing):
-    """Five physics steps in contact: d(torso pose, velocity)/d(servo sweep) by the implicit backward equals
-    the unrolled one to 1e-3 and both match central differences; the forward values are bit-identical."""
-    m, d = standing
-    with reversible_solver(ITERATIONS):
-        j_unrolled = np.asarray(_kept(jax.jacrev(_walk(m, d, 5)), d, "walk5-jac", "unrolled")(1.0))
-    with implicit_solver():
-        j_implicit = np.asarray(_kept(jax.jacrev(_walk(m, d, 5)), d, "walk5-jac", "implicit")(1.0))
-        v_implicit = np.asarray(_kept(_walk(m, d, 5), d, "walk5", "implicit")(1.0))
-    fj = _kept(_walk(m, d, 5), d, "walk5", "mjx")
-    v = np.asarray(fj(1.0))
-    np.testing.assert_array_equal(v_implicit, v)
-    fd = (np.asarray(fj(1.0 + 1e-3)) - np.asarray(fj(1.0 - 1e-3))) / 2e-3
-    scale = np.linalg.norm(j_unrolled)
-    assert scale > 1e-3, j_unrolled
-    assert np.linalg.norm(j_implicit - j_unrolled) <= 1e-3 * scale, (j_implicit, j_unrolled)
-    assert np.linalg.norm(j_implicit - fd) <= 0.05 * scale, (j_implicit, fd)
+@pytest.mark.cost(120)
+class TestStanding:
+    """The checks from the standing robot: one class, so that one worker runs them and the standing state is made once
+    (tests/conftest.py's scheduler)."""
 
+    def test_converged_jacobian_matches_unrolled_and_central_differences(self, standing):
+        """Five physics steps in contact: d(torso pose, velocity)/d(servo sweep) by the implicit backward equals
+        the unrolled one to 1e-3 and both match central differences; the forward values are bit-identical."""
+        m, d = standing
+        with reversible_solver(ITERATIONS):
+            j_unrolled = np.asarray(_kept(jax.jacrev(_walk(m, d, 5)), d, "walk5-jac", "unrolled")(1.0))
+        with implicit_solver():
+            j_implicit = np.asarray(_kept(jax.jacrev(_walk(m, d, 5)), d, "walk5-jac", "implicit")(1.0))
+            v_implicit = np.asarray(_kept(_walk(m, d, 5), d, "walk5", "implicit")(1.0))
+        fj = _kept(_walk(m, d, 5), d, "walk5", "mjx")
+        v = np.asarray(fj(1.0))
+        np.testing.assert_array_equal(v_implicit, v)
+        fd = (np.asarray(fj(1.0 + 1e-3)) - np.asarray(fj(1.0 - 1e-3))) / 2e-3
+        scale = np.linalg.norm(j_unrolled)
+        assert scale > 1e-3, j_unrolled
+        assert np.linalg.norm(j_implicit - j_unrolled) <= 1e-3 * scale, (j_implicit, j_unrolled)
+        assert np.linalg.norm(j_implicit - fd) <= 0.05 * scale, (j_implicit, fd)
 
-def test_forces_and_acceleration_jacobian_against_central_differences_and_unrolled(standing):
-    """One forward pass: the Jacobian of (qacc, qfrc_constraint, efc_force) with respect to the joint
-    velocities (which move the constraints' reference accelerations) and the controls. The implicit backward's
-    equals central differences, and the unrolled Newton iterations' equals it, each to 1e-3 of its norm per
-    input (measured: 2.6e-4 and 9e-5 for d qacc / d qvel).
+    def test_forces_and_acceleration_jacobian_against_central_differences_and_unrolled(self, standing):
+        """One forward pass: the Jacobian of (qacc, qfrc_constraint, efc_force) with respect to the joint
+        velocities (which move the constraints' reference accelerations) and the controls. The implicit backward's
+        equals central differences, and the unrolled Newton iterations' equals it, each to 1e-3 of its norm per
+        input (measured: 2.6e-4 and 9e-5 for d qacc / d qvel).
 
-    The solve starts cold (warm start cleared), so that the unrolled iterations run. From the standing state's
-    own warm start MJX's solver finds its gradient below tolerance before the first iteration and returns the
-    warm start, a constant: the unrolled derivative of qacc is then exactly 0 (measured), the implicit one is
-    unchanged. (Until 2026-11-25 this test compared one traced program with itself: a jitted function traced
-    under the first solver patch kept that trace under the second, which hid that.)"""
-    m, d = standing
-    d = d.replace(qacc_warmstart=jnp.zeros_like(d.qacc_warmstart))
+        The solve starts cold (warm start cleared), so that the unrolled iterations run. From the standing state's
+        own warm start MJX's solver finds its gradient below tolerance before the first iteration and returns the
+        warm start, a constant: the unrolled derivative of qacc is then exactly 0 (measured), the implicit one is
+        unchanged. (Until 2026-11-25 this test compared one traced program with itself: a jitted function traced
+        under the first solver patch kept that trace under the second, which hid that.)"""
+        m, d = standing
+        d = d.replace(qacc_warmstart=jnp.zeros_like(d.qacc_warmstart))
 
-    def f(qvel, ctrl):
-        x = mjx.forward(m, d.replace(qvel=qvel, ctrl=ctrl))
-        return jnp.concatenate([x.qacc, x.qfrc_constraint, x._impl.efc_force])
+        def f(qvel, ctrl):
+            x = mjx.forward(m, d.replace(qvel=qvel, ctrl=ctrl))
+            return jnp.concatenate([x.qacc, x.qfrc_constraint, x._impl.efc_force])
 
-    # a jitted function per solver mode (jax.jacrev makes a new one each call): one jitted function would be
-    # traced once, under the first patch
-    with reversible_solver(ITERATIONS):
-        ju = _kept(jax.jacrev(f, argnums=(0, 1)), d, "forward-jac", "unrolled")(d.qvel, d.ctrl)
-    with implicit_solver():
-        ji = _kept(jax.jacrev(f, argnums=(0, 1)), d, "forward-jac", "implicit")(d.qvel, d.ctrl)
-    # central differences: every entry of both inputs, +eps and -eps, in one batched call of MJX's own forward
-    eps, n_v = 1e-3, d.qvel.shape[0]
-    n = n_v + d.ctrl.shape[0]
-    steps = np.concatenate([np.eye(n, dtype=np.float32), -np.eye(n, dtype=np.float32)]) * eps
-    values = np.asarray(_kept(jax.vmap(f), d, "forward-vmap", "mjx")(d.qvel + steps[:, :n_v], d.ctrl + steps[:, n_v:]))
-    fd = ((values[:n] - values[n:]) / (2 * eps)).T  # (outputs, inputs)
-    fd = (fd[:, :n_v], fd[:, n_v:])
-    for name, a, b, c in zip(("qvel", "ctrl"), ji, ju, fd):
-        a, b = np.asarray(a), np.asarray(b)
-        assert np.linalg.norm(c) > 1.0, (name, c)
-        assert np.linalg.norm(a - c) <= 1e-3 * np.linalg.norm(c), (name, np.linalg.norm(a - c), np.linalg.norm(c))
-        assert np.linalg.norm(b - a) <= 1e-3 * np.linalg.norm(a), (name, np.linalg.norm(b - a), np.linalg.norm(a))
+        # a jitted function per solver mode (jax.jacrev makes a new one each call): one jitted function would be
+        # traced once, under the first patch
+        with reversible_solver(ITERATIONS):
+            ju = _kept(jax.jacrev(f, argnums=(0, 1)), d, "forward-jac", "unrolled")(d.qvel, d.ctrl)
+        with implicit_solver():
+            ji = _kept(jax.jacrev(f, argnums=(0, 1)), d, "forward-jac", "implicit")(d.qvel, d.ctrl)
+        # central differences: every entry of both inputs, +eps and -eps, in one batched call of MJX's own forward
+        eps, n_v = 1e-3, d.qvel.shape[0]
+        n = n_v + d.ctrl.shape[0]
+        steps = np.concatenate([np.eye(n, dtype=np.float32), -np.eye(n, dtype=np.float32)]) * eps
+        values = np.asarray(_kept(jax.vmap(f), d, "forward-vmap", "mjx")(d.qvel + steps[:, :n_v], d.ctrl + steps[:, n_v:]))
+        fd = ((values[:n] - values[n:]) / (2 * eps)).T  # (outputs, inputs)
+        fd = (fd[:, :n_v], fd[:, n_v:])
+        for name, a, b, c in zip(("qvel", "ctrl"), ji, ju, fd):
+            a, b = np.asarray(a), np.asarray(b)
+            assert np.linalg.norm(c) > 1.0, (name, c)
+            assert np.linalg.norm(a - c) <= 1e-3 * np.linalg.norm(c), (name, np.linalg.norm(a - c), np.linalg.norm(c))
+            assert np.linalg.norm(b - a) <= 1e-3 * np.linalg.norm(a), (name, np.linalg.norm(b - a), np.linalg.norm(a))
+
+    def test_integrator_rule_keeps_mjx_values_and_derivative(self, standing):
+        """`hexjax.sim.mjx_rules.integrator_rule`, under which every rollout that reverse or forward mode goes through is
+        traced: MJX's implicitfast integration bit for bit on the standing robot, and its Jacobian (reverse and forward
+        mode) in the mass matrix, the constraint force and the velocity equal to the one through JAX's Cholesky
+        rule; `spd_solve` likewise on random SPD matrices; MJX's integrator back in place after the context."""
+        from mujoco.mjx._src import forward as mjx_forward
+
+        from hexjax.sim.mjx_rules import integrator_rule, spd_solve
+
+        m, d = standing
+        mjx_implicit = mjx_forward.implicit
+        with integrator_rule():
+            ruled = mjx_forward.implicit
+        assert ruled is not mjx_implicit and mjx_forward.implicit is mjx_implicit
+
+        def integrate(fn):
+            def f(mass, frc, qvel):
+                out = fn(m, d.replace(qfrc_constraint=frc, qvel=qvel).tree_replace({"_impl.M": mass}))
+                return jnp.concatenate([out.qvel, out.qpos])
+            return f
+
+        args = (d._impl.M, d.qfrc_constraint, d.qvel)
+        assert float(jnp.abs(d.qfrc_constraint).max()) > 0.1, "expected contact forces"
+        # kept on disk (`_kept`), as every MJX program of this module: as plain `jax.jit`s their persistent-cache keys
+        # can change with what the worker traced before
+        kept = lambda fn, *tag: _kept(fn, d, "integrator", *tag)  # noqa: E731
+        np.testing.assert_array_equal(kept(integrate(ruled), "rule")(*args), kept(integrate(mjx_implicit), "mjx")(*args))
+        # the mass matrix moves only symmetrically: compare the Jacobian on symmetric directions, (J + J^T) / 2 in M's
+        # two axes (single entries are a convention of each rule: the factor reads one triangle)
+        sym = lambda j: 0.5 * (j + jnp.swapaxes(j, -1, -2))  # noqa: E731
+        for jac in (jax.jacrev, jax.jacfwd):
+            got = kept(jac(integrate(ruled), argnums=(0, 1, 2)), jac.__name__, "rule")(*args)
+            want = kept(jac(integrate(mjx_implicit), argnums=(0, 1, 2)), jac.__name__, "mjx")(*args)
+            for k, (g, w) in enumerate(zip(got, want)):
+                g, w = (sym(g), sym(w)) if k == 0 else (g, w)
+                assert float(jnp.abs(w).max()) > 1e-4
+                np.testing.assert_allclose(g, w, rtol=1e-4, atol=1e-6 * float(jnp.abs(w).max()))
+
+        k1, k2 = jax.random.split(jax.random.PRNGKey(5))
+        r = jax.random.normal(k1, (16, 6, 6))
+        a = r @ jnp.swapaxes(r, 1, 2) + 0.5 * jnp.eye(6)
+        b = jax.random.normal(k2, (16, 6))
+        cho = jax.vmap(lambda a, b: jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(a), b))
+        np.testing.assert_array_equal(jax.vmap(spd_solve)(a, b), cho(a, b))
+        on_sym = lambda f: (lambda s, b: f(0.5 * (s + jnp.swapaxes(s, 1, 2)), b))  # noqa: E731  symmetric directions
+        for jac in (jax.jacrev, jax.jacfwd):
+            got = jac(on_sym(jax.vmap(spd_solve)), argnums=(0, 1))(a, b)
+            want = jac(on_sym(cho), argnums=(0, 1))(a, b)
+            for g, w in zip(got, want):
+                np.testing.assert_allclose(g, w, rtol=1e-4, atol=1e-5 * float(jnp.abs(w).max()))
+        with pytest.raises(RuntimeError, match="inside"):
+            with integrator_rule():
+                raise RuntimeError("inside")
+        assert mjx_forward.implicit is mjx_implicit
+
+    def test_matrix_free_rows_match_mjx_with_their_derivative(self, standing):
+        """J x and J^T f of the contact rows, from `rows_times` / `rows_t_times`, against MJX's efc_J at the standing
+        state, and the tangents of both along a random change of qpos (through MJX's kinematics and collisions): equal
+        to float32 rounding (1e-5 of the largest value, 1e-4 of the largest tangent)."""
+        m, d = standing
+        n0 = check_model(m)
+        rng = np.random.default_rng(0)
+        ncon = d._impl.contact.dist.shape[0]
+        x = jnp.asarray(rng.normal(size=m.nv), jnp.float32)
+        f = jnp.asarray(rng.normal(size=4 * ncon), jnp.float32)
+        dq = jnp.asarray(rng.normal(size=m.nq), jnp.float32)
+
+        def products(q):
+            d2 = mjx_forward.fwd_position(m, d.replace(qpos=q))
+            bodies, on = _contacts(m, d2)
+            parts, jac = contact_parts(d2), d2._impl.efc_J[n0:]
+            return (jac @ x, rows_times(m, parts, bodies, on, x), jac.T @ f, rows_t_times(m, parts, bodies, on, f),
+                    jnp.sum(on))
+
+        vals, tans = Compiled(jax.jit(lambda q, t: jax.jvp(products, (q,), (t,))),
+                              static=("test_forward_mode/products", arrays_digest(d)))(d.qpos, dq)
+        assert int(vals[4]) >= 6, "expected the feet in contact"
+        for mjx_v, ours, tol in ((vals[0], vals[1], 1e-5), (vals[2], vals[3], 1e-5),
+                                 (tans[0], tans[1], 1e-4), (tans[2], tans[3], 1e-4)):
+            mjx_v, ours = np.asarray(mjx_v), np.asarray(ours)
+            scale = np.max(np.abs(mjx_v))
+            assert scale > 1e-2, mjx_v  # a zero on both sides would pass any comparison
+            assert np.max(np.abs(ours - mjx_v)) <= tol * scale, (ours, mjx_v)
 
 
 def test_elliptic_cone_is_refused():
@@ -255,92 +343,6 @@ def test_rotation_rule_keeps_mjx_values_and_derivative():
         with rotation_rule():
             raise RuntimeError("inside")
     assert mjx_math.quat_to_mat is mjx_q2m
-
-
-def test_integrator_rule_keeps_mjx_values_and_derivative(standing):
-    """`hexjax.sim.mjx_rules.integrator_rule`, under which every rollout that reverse or forward mode goes through is
-    traced: MJX's implicitfast integration bit for bit on the standing robot, and its Jacobian (reverse and forward
-    mode) in the mass matrix, the constraint force and the velocity equal to the one through JAX's Cholesky
-    rule; `spd_solve` likewise on random SPD matrices; MJX's integrator back in place after the context."""
-    from mujoco.mjx._src import forward as mjx_forward
-
-    from hexjax.sim.mjx_rules import integrator_rule, spd_solve
-
-    m, d = standing
-    mjx_implicit = mjx_forward.implicit
-    with integrator_rule():
-        ruled = mjx_forward.implicit
-    assert ruled is not mjx_implicit and mjx_forward.implicit is mjx_implicit
-
-    def integrate(fn):
-        def f(mass, frc, qvel):
-            out = fn(m, d.replace(qfrc_constraint=frc, qvel=qvel).tree_replace({"_impl.M": mass}))
-            return jnp.concatenate([out.qvel, out.qpos])
-        return f
-
-    args = (d._impl.M, d.qfrc_constraint, d.qvel)
-    assert float(jnp.abs(d.qfrc_constraint).max()) > 0.1, "expected contact forces"
-    # kept on disk (`_kept`), as every MJX program of this module: as plain `jax.jit`s their persistent-cache keys
-    # can change with what the worker traced before
-    kept = lambda fn, *tag: _kept(fn, d, "integrator", *tag)  # noqa: E731
-    np.testing.assert_array_equal(kept(integrate(ruled), "rule")(*args), kept(integrate(mjx_implicit), "mjx")(*args))
-    # the mass matrix moves only symmetrically: compare the Jacobian on symmetric directions, (J + J^T) / 2 in M's
-    # two axes (single entries are a convention of each rule: the factor reads one triangle)
-    sym = lambda j: 0.5 * (j + jnp.swapaxes(j, -1, -2))  # noqa: E731
-    for jac in (jax.jacrev, jax.jacfwd):
-        got = kept(jac(integrate(ruled), argnums=(0, 1, 2)), jac.__name__, "rule")(*args)
-        want = kept(jac(integrate(mjx_implicit), argnums=(0, 1, 2)), jac.__name__, "mjx")(*args)
-        for k, (g, w) in enumerate(zip(got, want)):
-            g, w = (sym(g), sym(w)) if k == 0 else (g, w)
-            assert float(jnp.abs(w).max()) > 1e-4
-            np.testing.assert_allclose(g, w, rtol=1e-4, atol=1e-6 * float(jnp.abs(w).max()))
-
-    k1, k2 = jax.random.split(jax.random.PRNGKey(5))
-    r = jax.random.normal(k1, (16, 6, 6))
-    a = r @ jnp.swapaxes(r, 1, 2) + 0.5 * jnp.eye(6)
-    b = jax.random.normal(k2, (16, 6))
-    cho = jax.vmap(lambda a, b: jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(a), b))
-    np.testing.assert_array_equal(jax.vmap(spd_solve)(a, b), cho(a, b))
-    on_sym = lambda f: (lambda s, b: f(0.5 * (s + jnp.swapaxes(s, 1, 2)), b))  # noqa: E731  symmetric directions
-    for jac in (jax.jacrev, jax.jacfwd):
-        got = jac(on_sym(jax.vmap(spd_solve)), argnums=(0, 1))(a, b)
-        want = jac(on_sym(cho), argnums=(0, 1))(a, b)
-        for g, w in zip(got, want):
-            np.testing.assert_allclose(g, w, rtol=1e-4, atol=1e-5 * float(jnp.abs(w).max()))
-    with pytest.raises(RuntimeError, match="inside"):
-        with integrator_rule():
-            raise RuntimeError("inside")
-    assert mjx_forward.implicit is mjx_implicit
-
-
-def test_matrix_free_rows_match_mjx_with_their_derivative(standing):
-    """J x and J^T f of the contact rows, from `rows_times` / `rows_t_times`, against MJX's efc_J at the standing
-    state, and the tangents of both along a random change of qpos (through MJX's kinematics and collisions): equal
-    to float32 rounding (1e-5 of the largest value, 1e-4 of the largest tangent)."""
-    m, d = standing
-    n0 = check_model(m)
-    rng = np.random.default_rng(0)
-    ncon = d._impl.contact.dist.shape[0]
-    x = jnp.asarray(rng.normal(size=m.nv), jnp.float32)
-    f = jnp.asarray(rng.normal(size=4 * ncon), jnp.float32)
-    dq = jnp.asarray(rng.normal(size=m.nq), jnp.float32)
-
-    def products(q):
-        d2 = mjx_forward.fwd_position(m, d.replace(qpos=q))
-        bodies, on = _contacts(m, d2)
-        parts, jac = contact_parts(d2), d2._impl.efc_J[n0:]
-        return (jac @ x, rows_times(m, parts, bodies, on, x), jac.T @ f, rows_t_times(m, parts, bodies, on, f),
-                jnp.sum(on))
-
-    vals, tans = Compiled(jax.jit(lambda q, t: jax.jvp(products, (q,), (t,))),
-                          static=("test_forward_mode/products", arrays_digest(d)))(d.qpos, dq)
-    assert int(vals[4]) >= 6, "expected the feet in contact"
-    for mjx_v, ours, tol in ((vals[0], vals[1], 1e-5), (vals[2], vals[3], 1e-5),
-                             (tans[0], tans[1], 1e-4), (tans[2], tans[3], 1e-4)):
-        mjx_v, ours = np.asarray(mjx_v), np.asarray(ours)
-        scale = np.max(np.abs(mjx_v))
-        assert scale > 1e-2, mjx_v  # a zero on both sides would pass any comparison
-        assert np.max(np.abs(ours - mjx_v)) <= tol * scale, (ours, mjx_v)
 
 
 def test_unrolled_gradient_through_the_elliptic_cone_is_finite_and_matches_differences():

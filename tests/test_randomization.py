@@ -110,47 +110,75 @@ def perturbed_walks():
     return {name: i for i, name in enumerate(ROWS)}, run(), run(), other
 
 
-# the tests of this fixture run on one pytest-xdist worker, one after the other (tests/conftest.py,
-# SHARED_FIXTURES): built once per worker, its three backends' walks cost about 4 min on a cold cache
-def test_same_key_gives_bit_identical_results(perturbed_walks):
-    _, s1, s2, _ = perturbed_walks
-    for x, y in zip(jax.tree_util.tree_leaves(s1), jax.tree_util.tree_leaves(s2)):
-        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+@pytest.mark.cost(400)
+class TestPerturbedWalks:
+    """The checks on the perturbed walks: one class, so that one worker runs them together and the walks (three
+    backends, about 4 min on a cold cache) are built once (tests/conftest.py's scheduler)."""
 
+    def test_same_key_gives_bit_identical_results(self, perturbed_walks):
+        _, s1, s2, _ = perturbed_walks
+        for x, y in zip(jax.tree_util.tree_leaves(s1), jax.tree_util.tree_leaves(s2)):
+            np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
 
-def test_each_perturbation_does_what_it_should(perturbed_walks):
-    row, s, _, _ = perturbed_walks
-    assert not np.asarray(s.nan).any()
-    z = np.asarray(s.trace)[..., 2]  # torso height per control step
-    adv = np.asarray(s.end_pose[:, 0] - s.start_pose[:, 0])
-    dyaw = np.abs(np.asarray(s.travel)[:, 2])
-    n_over = np.asarray(s.final_state.n_overcome).sum(-1)
-    nom = row["nominal"]
-    print({k: dict(adv=round(float(adv[i]), 5), z=round(float(z[i].mean()), 5), dyaw=round(float(dyaw[i]), 3),
-                   over=int(n_over[i]), tilt=round(float(np.asarray(s.max_tilt)[i]), 3)) for k, i in row.items()})
-    # a neutral draw changes nothing: the two nominal rows are the same walk
-    assert adv[nom] == adv[row["nominal again"]] and z[nom].mean() == z[row["nominal again"]].mean()
-    # the nominal walk crosses the bar with overcoming steps
-    assert adv[nom] > 0.3 and n_over[nom] >= 2  # the bar stands at 0.26 m
-    # a 0.6 kg payload (the robot weighs about 1.5 kg) sinks the torso, measured on the flat ground before the bar:
-    # the control steps before a foot of either walk passes x = 0.2 m (139 of 987; 0.86 mm lower there, and
-    # 0.6-1.1 mm in each 25 steps of it). Over the whole walk the crossing of the bar moves the means of 25 steps
-    # by up to 14 mm either way, so the mean of the whole walk is no measure of it: 3.1 mm on one machine,
-    # 1.1 mm on another (AVX-512), whose rounding the chaotic crossing amplifies
-    front = np.asarray(s.foot_trace)[..., 0].max(-1)  # the foremost foot's x per control step
-    before_bar = int(np.argmax((front[nom] > 0.2) | (front[row["payload"]] > 0.2)))
-    assert before_bar >= 50, before_bar
-    assert z[row["payload"], :before_bar].mean() < z[nom, :before_bar].mean() - 0.0005
-    # without friction the feet slip: the robot hardly advances (measured 0.02 m against 0.38 m)
-    assert adv[row["no friction"]] < 0.25 * adv[nom]
-    # a locked leg turns the walk (measured 0.79 rad of heading change against 0.12 rad)
-    assert dyaw[row["locked leg"]] > dyaw[nom] + 0.3
-    # a limp middle leg lets the torso sag (measured 4.5 mm lower on average) and shortens the walk
-    assert z[row["limp leg"]].mean() < z[nom].mean() - 0.002 and adv[row["limp leg"]] < 0.75 * adv[nom]
-    # the pads still touch the bar, but with every reading lost the tactile switch never fires
-    assert np.asarray(s.tactile_steps)[row["pad dropout"]].sum() > 0 and n_over[row["pad dropout"]] == 0
-    # three control steps of latency change the walk without stopping it
-    assert adv[row["latency"]] != adv[nom] and adv[row["latency"]] > 0.2
+    def test_each_perturbation_does_what_it_should(self, perturbed_walks):
+        row, s, _, _ = perturbed_walks
+        assert not np.asarray(s.nan).any()
+        z = np.asarray(s.trace)[..., 2]  # torso height per control step
+        adv = np.asarray(s.end_pose[:, 0] - s.start_pose[:, 0])
+        dyaw = np.abs(np.asarray(s.travel)[:, 2])
+        n_over = np.asarray(s.final_state.n_overcome).sum(-1)
+        nom = row["nominal"]
+        print({k: dict(adv=round(float(adv[i]), 5), z=round(float(z[i].mean()), 5), dyaw=round(float(dyaw[i]), 3),
+                       over=int(n_over[i]), tilt=round(float(np.asarray(s.max_tilt)[i]), 3)) for k, i in row.items()})
+        # a neutral draw changes nothing: the two nominal rows are the same walk
+        assert adv[nom] == adv[row["nominal again"]] and z[nom].mean() == z[row["nominal again"]].mean()
+        # the nominal walk crosses the bar with overcoming steps
+        assert adv[nom] > 0.3 and n_over[nom] >= 2  # the bar stands at 0.26 m
+        # a 0.6 kg payload (the robot weighs about 1.5 kg) sinks the torso, measured on the flat ground before the bar:
+        # the control steps before a foot of either walk passes x = 0.2 m (139 of 987; 0.86 mm lower there, and
+        # 0.6-1.1 mm in each 25 steps of it). Over the whole walk the crossing of the bar moves the means of 25 steps
+        # by up to 14 mm either way, so the mean of the whole walk is no measure of it: 3.1 mm on one machine,
+        # 1.1 mm on another (AVX-512), whose rounding the chaotic crossing amplifies
+        front = np.asarray(s.foot_trace)[..., 0].max(-1)  # the foremost foot's x per control step
+        before_bar = int(np.argmax((front[nom] > 0.2) | (front[row["payload"]] > 0.2)))
+        assert before_bar >= 50, before_bar
+        assert z[row["payload"], :before_bar].mean() < z[nom, :before_bar].mean() - 0.0005
+        # without friction the feet slip: the robot hardly advances (measured 0.02 m against 0.38 m)
+        assert adv[row["no friction"]] < 0.25 * adv[nom]
+        # a locked leg turns the walk (measured 0.79 rad of heading change against 0.12 rad)
+        assert dyaw[row["locked leg"]] > dyaw[nom] + 0.3
+        # a limp middle leg lets the torso sag (measured 4.5 mm lower on average) and shortens the walk
+        assert z[row["limp leg"]].mean() < z[nom].mean() - 0.002 and adv[row["limp leg"]] < 0.75 * adv[nom]
+        # the pads still touch the bar, but with every reading lost the tactile switch never fires
+        assert np.asarray(s.tactile_steps)[row["pad dropout"]].sum() > 0 and n_over[row["pad dropout"]] == 0
+        # three control steps of latency change the walk without stopping it
+        assert adv[row["latency"]] != adv[nom] and adv[row["latency"]] > 0.2
+
+    @pytest.mark.parametrize("backend", ["c", "warp"])
+    def test_every_backend_honours_the_same_draws(self, perturbed_walks, backend):
+        """The MuJoCo C and MJX-Warp backends, given the same `Perturbation`, show every effect the MJX rollout
+        shows (the same checks on their summaries; torso height: its mean over the walk on Warp, which records
+        traces, its lowest point on C, which does not) and each draw moves the robot about as far as on MJX (advance
+        within 5 cm, nominal 0.38 m; the engines' contacts differ, as in tests/test_backends.py)."""
+        row, m, _, other = perturbed_walks
+        c = other[backend]
+        assert not np.asarray(c.nan).any()
+        adv = lambda s: np.asarray(s.end_pose[:, 0] - s.start_pose[:, 0])
+        ac, am = adv(c), adv(m)
+        low = np.asarray(c.trace)[..., 2].mean(-1) if backend == "warp" else np.asarray(c.min_height)
+        dyaw = np.abs(np.asarray(c.travel)[:, 2])
+        n_over = np.asarray(c.final_state.n_overcome).sum(-1)
+        nom = row["nominal"]
+        print({k: dict(adv_c=round(float(ac[i]), 4), adv_mjx=round(float(am[i]), 4), low=round(float(low[i]), 4),
+                       dyaw=round(float(dyaw[i]), 3), over=int(n_over[i])) for k, i in row.items()})
+        assert ac[nom] == ac[row["nominal again"]] and ac[nom] > 0.3 and n_over[nom] >= 2
+        assert low[row["payload"]] < low[nom] - 0.001
+        assert ac[row["no friction"]] < 0.25 * ac[nom]
+        assert dyaw[row["locked leg"]] > dyaw[nom] + 0.3
+        assert low[row["limp leg"]] < low[nom] - 0.002 and ac[row["limp leg"]] < 0.75 * ac[nom]
+        assert np.asarray(c.tactile_steps)[row["pad dropout"]].sum() > 0 and n_over[row["pad dropout"]] == 0
+        assert ac[row["latency"]] != ac[nom] and ac[row["latency"]] > 0.2
+        np.testing.assert_allclose(ac, am, atol=0.05)
 
 
 def test_sweep_axes_envelope_and_interval():
@@ -203,29 +231,3 @@ def test_robustness_command_refuses_bad_input_before_any_rollout(capsys, tmp_pat
         assert len(err) == 1 and msg in err[0], err
     assert not (tmp_path / "r.json.partial.json").exists()
 
-
-@pytest.mark.parametrize("backend", ["c", "warp"])
-def test_every_backend_honours_the_same_draws(perturbed_walks, backend):
-    """The MuJoCo C and MJX-Warp backends, given the same `Perturbation`, show every effect the MJX rollout
-    shows (the same checks on their summaries; torso height: its mean over the walk on Warp, which records
-    traces, its lowest point on C, which does not) and each draw moves the robot about as far as on MJX (advance
-    within 5 cm, nominal 0.38 m; the engines' contacts differ, as in tests/test_backends.py)."""
-    row, m, _, other = perturbed_walks
-    c = other[backend]
-    assert not np.asarray(c.nan).any()
-    adv = lambda s: np.asarray(s.end_pose[:, 0] - s.start_pose[:, 0])
-    ac, am = adv(c), adv(m)
-    low = np.asarray(c.trace)[..., 2].mean(-1) if backend == "warp" else np.asarray(c.min_height)
-    dyaw = np.abs(np.asarray(c.travel)[:, 2])
-    n_over = np.asarray(c.final_state.n_overcome).sum(-1)
-    nom = row["nominal"]
-    print({k: dict(adv_c=round(float(ac[i]), 4), adv_mjx=round(float(am[i]), 4), low=round(float(low[i]), 4),
-                   dyaw=round(float(dyaw[i]), 3), over=int(n_over[i])) for k, i in row.items()})
-    assert ac[nom] == ac[row["nominal again"]] and ac[nom] > 0.3 and n_over[nom] >= 2
-    assert low[row["payload"]] < low[nom] - 0.001
-    assert ac[row["no friction"]] < 0.25 * ac[nom]
-    assert dyaw[row["locked leg"]] > dyaw[nom] + 0.3
-    assert low[row["limp leg"]] < low[nom] - 0.002 and ac[row["limp leg"]] < 0.75 * ac[nom]
-    assert np.asarray(c.tactile_steps)[row["pad dropout"]].sum() > 0 and n_over[row["pad dropout"]] == 0
-    assert ac[row["latency"]] != ac[nom] and ac[row["latency"]] > 0.2
-    np.testing.assert_allclose(ac, am, atol=0.05)

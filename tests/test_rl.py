@@ -48,6 +48,7 @@ def test_env_bad_input():
             train_ppo(HexapodGoalEnv(), num_envs=n + 1)
 
 
+@pytest.mark.cost(170)
 def test_brax_ppo_trains_end_to_end_and_its_reward_improves():
     """40k env steps of Brax PPO: the deterministic evaluations rise at each of the 3 evaluations, by more
     than 5 in all (seeded; measured 1.5 -> 4.6 -> 9.2, where a policy that learns nothing stays near its

@@ -21,6 +21,7 @@ from hexjax.world.terrain import sample
 FLAT = PhysicsConfig(slots_per_leg=0, torso_slots=0)
 
 
+@pytest.mark.cost(65)
 @pytest.mark.parametrize("gait", ["tripod", "wave"])
 def test_flat_walk_straight_1m(gait):
     """Acceptance: 1 m on flat ground, 16 envs with random initial yaw, both gaits: |dx|, |dy| within a few
@@ -74,6 +75,7 @@ def test_nan_is_flagged_and_contained():
     assert np.all(np.isfinite(np.asarray(s.end_pose))) and np.all(np.isfinite(np.asarray(s.energy)))
 
 
+@pytest.mark.cost(85)
 def test_sharded_rollout_matches_unsharded():
     devs = jax.devices()
     assert len(devs) >= 2, "conftest asks XLA for two host devices"

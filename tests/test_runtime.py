@@ -9,8 +9,6 @@ import sys
 
 import pytest
 
-from conftest import SHARED_FIXTURES
-
 # four independent batched Cholesky factorisations in one program: XLA:CPU may run them at once, and jaxlib
 # 0.10.x split each batch over the intra-op pool and blocked until its parts were done; with the default pool of
 # a 2-core machine this program hung in its first call
@@ -68,14 +66,12 @@ def test_import_adds_its_xla_flags_unless_told_not_to(given, keep, expect):
 
 
 # A toy suite run under tests/conftest.py's scheduler with two workers, in which two tests kill their worker: the
-# first test of a shared-fixture group (named as the first two tests of a group of SHARED_FIXTURES, so that the
-# scheduler hands them out together) and the last quick test.
-_BY_FIXTURE = {}
-for _test, _fixture in SHARED_FIXTURES.items():
-    _BY_FIXTURE.setdefault(_fixture, []).append(_test)
-_GROUP = next(tests for tests in _BY_FIXTURE.values() if len(tests) >= 2)[:2]
-_CRASHING_SUITE = f'''
+# first test of a class (a unit the scheduler hands out whole) and the last quick test; the costliest test is
+# marked so, and handed out first.
+_CRASHING_SUITE = '''
 import os, time
+
+import pytest
 
 def _crash_once(name):
     mark = os.path.join(os.environ["CRASH_DIR"], name)
@@ -83,12 +79,14 @@ def _crash_once(name):
         open(mark, "w").close()
         os.abort()
 
-def {_GROUP[0]}():
-    _crash_once("group")
+class TestGroup:
+    def test_first(self):
+        _crash_once("group")
 
-def {_GROUP[1]}():
-    time.sleep(0.2)
+    def test_second(self):
+        time.sleep(0.2)
 
+@pytest.mark.cost(3)
 def test_slow():
     time.sleep(3)
 
@@ -124,8 +122,29 @@ def test_a_crashed_worker_fails_its_test_and_the_run_goes_on(tmp_path):
     out = r.stdout
     assert r.returncode == 1, out[-3000:]
     assert sorted(os.listdir(tmp_path / "marks")) == ["group", "last"], out[-3000:]  # both crashes happened
-    for name in (_GROUP[0], "test_quick_3"):
+    for name in ("TestGroup::test_first", "test_quick_3"):
         assert out.count(f"FAILED test_toy.py::{name}") == 1 and f"crashed while running 'test_toy.py::{name}'" in out
-    for name in (_GROUP[1], "test_slow", "test_quick_0", "test_quick_1", "test_quick_2"):
+    for name in ("TestGroup::test_second", "test_slow", "test_quick_0", "test_quick_1", "test_quick_2"):
         assert out.count(f"PASSED test_toy.py::{name}") == 1, (name, out[-3000:])
     assert "2 failed, 5 passed" in out, out[-3000:]
+
+
+def test_the_costliest_test_goes_first_and_a_class_to_one_worker(tmp_path):
+    """The toy suite without its crashes: `cost`-marked tests are collected first, the rest keep their order and a
+    class's tests stay together; run on two workers, the class's tests run on one of them."""
+    import re
+    import shutil
+    shutil.copy(os.path.join(os.path.dirname(__file__), "conftest.py"), tmp_path / "conftest.py")
+    (tmp_path / "test_toy.py").write_text(_CRASHING_SUITE)
+    (tmp_path / "marks").mkdir()
+    for name in ("group", "last"):
+        (tmp_path / "marks" / name).touch()  # crashed already: nothing crashes now
+    env = dict(os.environ, CRASH_DIR=str(tmp_path / "marks"))
+    run = lambda *a: subprocess.run([sys.executable, "-m", "pytest", "-p", "no:cacheprovider", *a, "test_toy.py"],
+                                    cwd=tmp_path, capture_output=True, text=True, timeout=120, env=env).stdout
+    order = [line for line in run("--collect-only", "-q").splitlines() if line.startswith("test_toy.py::")]
+    assert [o.split("::", 1)[1] for o in order] == ["test_slow", "TestGroup::test_first", "TestGroup::test_second",
+                                                    "test_quick_0", "test_quick_1", "test_quick_2", "test_quick_3"]
+    out = run("-v", "-n", "2")
+    worker = dict((name, gw) for gw, name in re.findall(r"\[(gw\d)\] \[ *\d+%\] PASSED test_toy.py::(\S+)", out))
+    assert len(worker) == 7 and worker["TestGroup::test_first"] == worker["TestGroup::test_second"], out[-3000:]

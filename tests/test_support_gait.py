@@ -102,6 +102,7 @@ def test_planned_footholds_are_grid_cells_on_the_terrain():
     assert np.asarray(pose)[:, 2].max() > ROBOT.hip_height + 0.02  # the torso rose over the waves
 
 
+@pytest.mark.cost(75)
 def test_planned_motion_crosses_the_patch_upright():
     """The MJX robot under support planning crosses two randomised patches without capsizing."""
     res = run_chen2019(n=2, seed=3, fixed_step_heights=())

@@ -171,6 +171,7 @@ def test_smooth_gate_tends_to_hard_and_has_gradients():
     assert all(np.isfinite(float(x)) for x in jax.tree_util.tree_leaves(gr))
 
 
+@pytest.mark.cost(50)
 def test_mjx_pad_touch_raises_the_next_step():
     """In MJX: one wide, 5 cm high bar across the path. With the method, legs whose pads touch it take
     overcoming steps (gates recorded), the feet rise higher than the basic swing allows, and the robot ends

@@ -236,6 +236,7 @@ FAMILIES = ("stairs-up", "stairs-down", "slope-up", "slope-down", "stones", "box
 LEVELS = (0.0, 1 / 3, 2 / 3, 1.0)
 
 
+@pytest.mark.cost(1800)
 def test_families_walkable_at_zero_and_harder_with_difficulty():
     """The open-loop Luneckas 2020 tripod (3 cm swing) walks 0.2 m on each new family, 16 envs per family (4 at
     each of difficulties 0, 1/3, 2/3, 1), all in one rollout on the `validated` physics (96 envs: about 160 s on

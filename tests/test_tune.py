@@ -39,6 +39,7 @@ def _cosines(obj, u0, groups, static, eps=1e-3, one_program=True):
     return res
 
 
+@pytest.mark.cost(160)
 def test_gradient_matches_central_differences_per_group():
     """The acceptance check: on a smooth objective (the mean travel of 4 envs over a 0.4 s window on flat
     ground, MJX's default two Newton iterations traced as a scan), the autodiff gradient with respect to
@@ -57,6 +58,7 @@ def test_gradient_matches_central_differences_per_group():
         assert cos >= 0.9, f"{group}: cosine {cos:.3f}, autodiff {a}, central differences {b}"
 
 
+@pytest.mark.cost(250)
 def test_cpg_gradient_matches_central_differences():
     """The same check for the seed-003 CPG on `yu2019`, for every group of the "cpg" preset: the linear
     converter (trims, clearance; Eq. 6), the contact thresholds F_contact (Eqs. 8-9) and the elevator reflex
@@ -154,6 +156,7 @@ def _numbers(log):
     return [{k: v for k, v in e.items() if k not in ("wall_s", "eval_s", "train_s")} for e in log]
 
 
+@pytest.mark.cost(200)
 def test_tuning_is_deterministic_and_resumes(tmp_path):
     """A 2-step run, extended from its checkpoint to 3 steps, logs exactly what a fresh 3-step run logs (so
     the run is deterministic and resumes where it stopped); the params move inside their bounds; the returned
@@ -267,6 +270,7 @@ def test_held_out_figures_per_terrain_family_follow_the_batch_layout():
     assert not tall[flat].any() and tall[boxes].all(), tall
 
 
+@pytest.mark.cost(110)
 def test_es_baseline_improves_and_is_deterministic(tmp_path):
     """CMA-ES on an objective with a clear way down: the goal error plus 0.05 per joule, the step height
     among the tuned params (a lower swing costs less energy). In 3 generations of 4 x 2 rollouts the mean

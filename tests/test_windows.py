@@ -25,6 +25,7 @@ def _loss(s):
             + 2.0 * s.max_tilt - 3.0 * s.min_height + 0.5 * s.end_pose[:, 1])
 
 
+@pytest.mark.cost(150)
 def test_parallel_windows_give_the_scans_gradient():
     """Tactile tripod (the gradient check's fast setting) on flat ground, 2 envs, 0.4 s after 0.1 s of
     settling: 25 control steps in windows of 4, so 7 windows, the last one padded. Implicit solve, and a per-step
