@@ -58,7 +58,7 @@ _EXPORTS = {
     "hexjax.control.vdp": ["NetworkParams"],
     "hexjax.control.avoid_gait": ["AvoidGaitController"],
     "hexjax.control.support_gait": ["SupportPlanController"],
-    "hexjax.experiments.metrics": ["goal_errors"],
+    "hexjax.sim.metrics": ["goal_errors"],
 }
 _WHERE = {name: module for module, names in _EXPORTS.items() for name in names}
 __all__ = sorted(_WHERE)

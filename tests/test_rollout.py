@@ -9,7 +9,7 @@ import pytest
 from hexjax.cache import cache_dir
 from hexjax.control.base import Controller
 from hexjax.control.gait import GaitController
-from hexjax.experiments.metrics import goal_errors
+from hexjax.sim.metrics import goal_errors
 from hexjax.sim.compiled import Compiled
 from hexjax.sim.config import PhysicsConfig, RolloutConfig, SensorConfig
 from hexjax.sim.model import SimModel, contact_geoms, mjx

@@ -239,8 +239,8 @@ LEVELS = (0.0, 1 / 3, 2 / 3, 1.0)
 @pytest.mark.cost(1800)
 def test_families_walkable_at_zero_and_harder_with_difficulty():
     """The open-loop Luneckas 2020 tripod (3 cm swing) walks 0.2 m on each new family, 16 envs per family (4 at
-    each of difficulties 0, 1/3, 2/3, 1), all in one rollout on the `validated` physics (96 envs: about 160 s on
-    2 cores). At difficulty 0 every env succeeds (upright, within 10 cm of the goal, finite).
+    each of difficulties 0, 1/3, 2/3, 1), all in one rollout on the `validated` physics (`walk_families`, what
+    `hexjax families` runs; 96 envs, the suite's costliest test: about 30 min of one of 2 cores). At difficulty 0 every env succeeds (upright, within 10 cm of the goal, finite).
     - Stairs up and down, slope up, boxes: success never rises from one level to the next by more than one env's
       share (1/4) and ends at least 75 points below difficulty 0 (they read 0 % at difficulty 1).
     - Slope down: its steepest ramp, 34 deg, is inside the friction cone (tan 34 deg = 0.67 < mu = 1), so a
@@ -251,27 +251,12 @@ def test_families_walkable_at_zero_and_harder_with_difficulty():
       falls at 2 Newton iterations were that solver's; docs/robustness.md), so at difficulty 1 it advances at
       least 3 cm less than at 0 and at most 1 of 4 envs falls.
     The features begin at x = 0.1 m, under the front feet, so a 0.2 m walk crosses them."""
-    import dataclasses
-
-    from hexjax.control.gait import GaitController
-    from hexjax.experiments.metrics import goal_errors
-    from hexjax.sim.physics import get_physics, shared_config
-    from hexjax.sim.rollout import rollout
-    from hexjax.world.terrain import pad_terrain
+    from hexjax.experiments.families import walk_families
+    from hexjax.sim.physics import get_physics
 
     n, dist = 4, 0.2
-    robot = get_robot("luneckas2020")
-    specs = [get_terrain(f, start_x=0.1, length=dist + 0.4).at_difficulty(d) for f in FAMILIES for d in LEVELS]
-    m = max(s.max_boxes for s in specs)
-    parts = [pad_terrain(sample(s, jax.random.PRNGKey(i), n), m) for i, s in enumerate(specs)]
-    terr = jax.tree_util.tree_map(lambda *x: np.concatenate(x), *parts)
-    ctrl = GaitController(robot, gait="tripod")
-    n_cycles, duration = ctrl.duration_for(dist)
-    ctrl = dataclasses.replace(ctrl, n_cycles=n_cycles)
-    physics = shared_config(get_physics("validated"), specs)  # 3 slots per leg, 8 for the torso (the stones')
-    assert (physics.slots_per_leg, physics.torso_slots) == (3, 8)
-    s = rollout(robot, terr, ctrl, ctrl.default_params(), duration, jax.random.PRNGKey(9), physics=physics)
-    e = goal_errors(s, dist)
+    s, e, _, physics = walk_families("gait", FAMILIES, LEVELS, n, dist, 0.1, get_physics("validated"))
+    assert (physics.slots_per_leg, physics.torso_slots) == (3, 8)  # the most any family takes (the stones')
     shape = (len(FAMILIES), len(LEVELS), n)
     ok = np.asarray(e.success).reshape(shape).mean(-1)
     advance = np.asarray(e.advance).reshape(shape).mean(-1)

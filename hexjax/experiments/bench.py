@@ -13,7 +13,6 @@ import mujoco
 import numpy as np
 from tqdm.auto import tqdm
 
-from hexjax.control.gait import GaitController
 from hexjax.control.registry import CONTROLLERS, make_controller
 from hexjax.sim.config import PhysicsConfig, RolloutConfig
 from hexjax.sim.physics import get_physics
@@ -34,7 +33,7 @@ def mujoco_c_steps_per_s(robot: str, terrain: str, physics: PhysicsConfig, secon
     m.geom_size[:] = np.asarray(mx.geom_size[0])
     d = mujoco.MjData(m)
     mujoco.mj_resetDataKeyframe(m, d, 0)
-    ctrl = GaitController(spec)
+    ctrl = make_controller("gait", spec)
     p = ctrl.default_params()
     step = jax.jit(lambda s: ctrl.step(p, s, None))
     st = ctrl.init(p, None)

@@ -82,7 +82,7 @@ def objective_program(problem: Problem, grad: bool, duration: float | None = Non
                       settle_time: float | None = None):
     """The jitted program timed: the smooth training objective (u, terrain, keys) -> (mean J, per-env J), or with
     `grad` its value and gradient through the gradient rollout (`Problem.gradient_program`; both read `duration`
-    and `settle_time`). Also what scripts/compile_probe.py and scripts/profile_grad.py compile."""
+    and `settle_time`). Also what scripts/profile_grad.py compiles."""
     if grad:
         return jax.jit(problem.gradient_program(duration, settle_time))
     model, fn = problem.train_rollout(grad=False, duration=duration, settle_time=settle_time)

@@ -11,7 +11,7 @@ import jax
 from tqdm.auto import tqdm
 
 from hexjax.control.registry import make_controller
-from hexjax.experiments.metrics import batch_stats, goal_errors
+from hexjax.sim.metrics import batch_stats, goal_errors
 from hexjax.sim.config import RolloutConfig
 from hexjax.sim.model import sim_model
 from hexjax.sim.physics import PhysicsPreset, get_physics, shared_config
@@ -57,7 +57,7 @@ def evaluate(robot: str = "luneckas2020", gait: str = "tripod", distance: float 
         terr = pad_terrain(sample(tspec, k_t, batch), m)
         summ, st = rollout(spec, terr, ctrl, params, duration, k_r, physics=physics, config=RolloutConfig(), mesh=mesh,
                            backend=backend, stats=True)
-        stats = batch_stats(summ, goal_errors(summ, distance))
+        stats = batch_stats(summ, goal_errors(summ, distance), distance)
         stats.update(wall_s=st.run_s, compile_s=st.compile_s, env_steps_per_s=st.env_steps_per_s)
         results[name] = stats
     return {"config": dict(robot=spec.name, gait=gait, distance_m=distance, batch=batch, seed=seed,

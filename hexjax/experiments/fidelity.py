@@ -27,14 +27,13 @@ import dataclasses
 import hashlib
 import json
 import math
-import os
 import threading
 from typing import Dict, List, Optional
 
 import numpy as np
 
 from hexjax.experiments.fidelity_view import CONTRACT, plot, report  # noqa: F401 (plot, report: the registry's)
-from hexjax.experiments.metrics import paired
+from hexjax.sim.metrics import paired
 from hexjax.experiments.runner import read_partial, write_partial
 
 ALL = "all"
@@ -160,7 +159,7 @@ def _walk(o, preset, backend: str, label: str, ctrl, rb, duration: float, idx: L
     one rollout call per group of cells that share a physics configuration."""
     import jax
 
-    from hexjax.experiments.metrics import goal_errors
+    from hexjax.sim.metrics import goal_errors
     from hexjax.sim.config import RolloutConfig
     from hexjax.sim.rollout import rollout
     from hexjax.world.randomization import concat_perturbations
@@ -203,13 +202,13 @@ def _replay(o, preset, backend: str, spec: Dict, key, robot) -> Dict[str, List]:
     under one preset: {cell name: (B, times, 4) as lists}."""
     import jax
 
-    from hexjax.control.gait import GaitController
+    from hexjax.control.registry import make_controller
     from hexjax.sim.config import RolloutConfig
     from hexjax.sim.rollout import rollout
     from hexjax.world.presets import get_terrain
     from hexjax.world.randomization import randomization_from_dict, sample_perturbation
     from hexjax.world.terrain import sample
-    ctrl = GaitController(robot)
+    ctrl = make_controller("gait", robot)
     cpu = jax.devices("cpu")[0]
     times = [float(t) for t in spec["times"]]
     steps = [int(round(t / ctrl.dt)) - 1 for t in times]

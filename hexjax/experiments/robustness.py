@@ -179,7 +179,7 @@ def sweep(o) -> Dict:
     from tqdm.auto import tqdm
 
     from hexjax.control.tactile import overcome_height
-    from hexjax.experiments.metrics import batch_stats, goal_errors
+    from hexjax.sim.metrics import batch_stats, goal_errors
     from hexjax.sim.config import RolloutConfig
     from hexjax.sim.physics import get_physics
     from hexjax.sim.rollout import make_mesh, rollout
@@ -271,10 +271,9 @@ def sweep(o) -> Dict:
                            perturbation=pert, stats=True, mesh=mesh, params_batched=kind == "avoid",
                            backend=backend)
         errs = goal_errors(summ, o.distance)
-        stats = batch_stats(summ, errs)
+        stats = batch_stats(summ, errs, o.distance)
         k = int(np.asarray(errs.success).sum())
-        stats.update(successes=k, success_ci95=list(wilson(k, o.batch)), wall_s=st.run_s, compile_s=st.compile_s,
-                     goal_error_cm=100 * float(np.nanmean(np.hypot(np.asarray(errs.dx), np.asarray(errs.dy)))))
+        stats.update(successes=k, success_ci95=list(wilson(k, o.batch)), wall_s=st.run_s, compile_s=st.compile_s)
         if getattr(o, "per_env", False):
             stats["per_env"] = {f: np.asarray(getattr(errs, f)).tolist() for f in ("dx", "dy", "dalpha", "success")}
             stats["per_env"].update(fell=np.asarray(summ.fell).tolist(), energy_J=np.asarray(summ.energy).tolist())

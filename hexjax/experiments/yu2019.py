@@ -17,7 +17,8 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from hexjax.control.cpg import MODE_NAMES, TRIPOD_GROUP, CPGController
-from hexjax.experiments.metrics import paired
+from hexjax.control.registry import make_controller
+from hexjax.sim.metrics import paired
 from hexjax.experiments.registry import experiment
 from hexjax.sim.config import RolloutConfig
 from hexjax.sim.physics import get_physics, shared_config, traced_backend
@@ -172,7 +173,7 @@ def run_experiment(name: str, batch: int = 32, seed: int = 0, duration: Optional
     preset = get_physics(physics)
     backend = traced_backend(preset, "foot traces (a step's success reads them)")
     if params:
-        with_values(CPGController(robot).default_params(), params)  # a wrong name or shape fails here
+        with_values(make_controller("cpg", robot).default_params(), params)  # a wrong name or shape fails here
     variants = list(ex["variants"].items())
     stumble_tilt = math.radians(ex["stumble_tilt_deg"])
     out = {"config": {"experiment": name, "robot": robot.name, "batch": batch, "seed": seed, "duration_s": dur,
@@ -181,7 +182,7 @@ def run_experiment(name: str, batch: int = 32, seed: int = 0, duration: Optional
                       "solver_iterations": preset.iterations,
                       "params": {k: np.asarray(v).tolist() for k, v in (params or {}).items()} or "the paper's"},
            "results": {}, "_records": {}, "timing": [], "physics": preset.record(backend)}
-    ctrl = CPGController(robot)
+    ctrl = make_controller("cpg", robot)
     rows = [(t, v, o or {}) for t in ex["terrains"] for v, o in variants]
     specs = {t: get_terrain(t, **ex.get("terrain_overrides", {})) for t in ex["terrains"]}
     sampled = {t: sample(spec, jax.random.PRNGKey(seed), batch) for t, spec in specs.items()}

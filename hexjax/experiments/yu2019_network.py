@@ -20,7 +20,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from hexjax.control.cpg import CPG_GAITS, MODE_NAMES, CPGController, gait_fields
+from hexjax.control.cpg import CPG_GAITS, MODE_NAMES, gait_fields
+from hexjax.control.registry import make_controller
 from hexjax.control.vdp import NetworkParams, integrate, phase_amplitude
 from hexjax.experiments.yu2019 import paired_rows
 from hexjax.sim.config import RolloutConfig
@@ -62,7 +63,7 @@ def gait_walk(gaits, batch: int, seed: int, duration: float, physics) -> Dict:
     backend = traced_backend(preset, "controller traces (the legs' swing/stance modes)")
     spec = get_terrain("flat")
     flat = sample(spec, jax.random.PRNGKey(seed), batch)
-    ctrl = CPGController(robot)
+    ctrl = make_controller("cpg", robot)
     rows = [ctrl.default_params(**gait_fields(g)) for g in gaits]
     terrain, params, keys = paired_rows([flat] * len(gaits), rows, batch, seed)
     t0 = time.perf_counter()

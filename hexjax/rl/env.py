@@ -3,7 +3,7 @@ same control step as the rollout (`hexjax.sim.step`: terrain slots, sensors, sub
 
 `HexapodGoalEnv` follows `brax.envs.base.Env`: `reset(rng)` and `step(state, action)` on one env, vmapped by
 Brax's wrappers. Each reset draws its own terrain from a `TerrainSpec` (domain randomisation: terrain, start
-heading, goal position, ground friction scale), places the robot at the origin and a goal ahead of it, and
+heading, goal position, the ground's friction coefficient), places the robot at the origin and a goal ahead of it, and
 settles nothing (the robot starts in its stance keyframe). A step runs one control period: terrain slots
 assigned to the feet, `n_sub` MJX steps (`hexjax.sim.step.env_view`, `physics`).
 
@@ -41,6 +41,7 @@ from mujoco.mjx._src import math as mjx_math  # noqa: E402 (after hexjax.sim.mod
 from hexjax.control.gait import GaitController, GaitState
 from hexjax.sim.config import PhysicsConfig, RolloutConfig, SensorConfig, physics_for
 from hexjax.sim.model import mjx, read_obs, sim_model
+from hexjax.sim.perturb import pair_friction_with
 from hexjax.sim.step import env_view, fall_state, keep_finite, physics, substeps
 from hexjax.world.presets import get_robot, get_terrain
 from hexjax.world.terrain import Terrain, sample_one
@@ -49,7 +50,7 @@ from hexjax.world.terrain import Terrain, sample_one
 @struct.dataclass
 class HexState:
     """What an episode carries: MJX data, its terrain, goal (2,) m, gait time t (s), distance to the goal (m),
-    friction scale (domain randomisation)."""
+    friction coefficient mu (domain randomisation; `hexjax.sim.perturb.pair_friction_with`)."""
 
     data: mjx.Data
     terrain: Terrain
@@ -80,7 +81,7 @@ class HexapodGoalEnv(Env):
             raise ValueError(f"residual_scale={residual_scale!r}: must be > 0")
         lo, hi = friction_range
         if not 0 < lo <= hi:
-            raise ValueError(f"friction_range={friction_range!r}: need 0 < lo <= hi")
+            raise ValueError(f"friction_range={friction_range!r}: need 0 < lo <= hi (the friction coefficient mu)")
         self.robot = get_robot(robot)
         self.tspec = get_terrain(terrain)
         base = physics or PhysicsConfig(slots_per_leg=self.tspec.slots_per_leg)
@@ -117,10 +118,10 @@ class HexapodGoalEnv(Env):
         return "mjx"
 
     def _view(self, hs: HexState, d):
-        """(model, data, obs) of the episode at data d; the robot's contacts are explicit <pair>s, which carry
-        their own friction, scaled by the episode's."""
+        """(model, data, obs) of the episode at data d; the robot's contacts are explicit <pair>s, whose sliding
+        friction is the episode's mu, as a `Perturbation`'s friction sets it."""
         base = self.sm.mjx_model
-        base = base.replace(pair_friction=base.pair_friction * hs.friction)
+        base = base.replace(pair_friction=pair_friction_with(base.pair_friction, hs.friction))
         return env_view(self.sm, self.sensors, hs.terrain, d, base=base)
 
     def reset(self, rng: jax.Array) -> State:

@@ -41,13 +41,20 @@ def _fault_on(p, t, kind: int):
     return (p.fault_kind == kind) & (t >= p.fault_time) & (jnp.asarray(_ACT_LEG) == p.fault_leg)
 
 
+def pair_friction_with(pair_friction, mu):
+    """The contact pairs' friction (npair, 5) with the sliding coefficient of both tangent directions set to `mu`
+    (Coulomb's mu, an absolute value: what "friction" means throughout hexjax), the torsional and rolling ones
+    kept. MuJoCo's C code raises every friction coefficient to mjMINMU (1e-5); MJX does not, and a zero
+    coefficient gives NaN in its cone, so `mu` is raised to it here."""
+    f = jnp.maximum(mu, MIN_FRICTION)
+    return pair_friction.at[:, 0].set(f).at[:, 1].set(f)
+
+
 def model(sm, m, p, t):
     """One env's mjx.Model `m` with the draw `p` applied at walking time t (s; a limp leg acts from its onset)."""
     b = sm.torso_body
-    # MuJoCo's C code raises every friction coefficient to mjMINMU (1e-5); MJX does not, and a zero
-    # coefficient gives NaN in its cone
-    f = jnp.where(p.friction >= 0.0, jnp.maximum(p.friction, MIN_FRICTION), m.pair_friction[:, 0])
-    pair_friction = m.pair_friction.at[:, 0].set(f).at[:, 1].set(f)
+    pair_friction = pair_friction_with(m.pair_friction,
+                                       jnp.where(p.friction >= 0.0, p.friction, m.pair_friction[:, 0]))
     # torso scaled, payload a point mass at its offset; the body's frame of inertia is the torso's (identity
     # body_iquat, built so in hexjax.sim.mjcf), the payload's off-diagonal inertia dropped
     total, ipos, inertia = torso_with_payload(m.body_mass[b], m.body_ipos[b], m.body_inertia[b], p)

@@ -8,7 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from hexjax.control.tactile import TactileGaitController
+from hexjax.control.registry import make_controller
 from hexjax.sim.compiled import Compiled
 from hexjax.world.terrain import sample
 
@@ -18,7 +18,7 @@ def tactile_check_setting(robot):
     scripts/fd_probe.py): the smooth Luneckas 2020 tactile tripod with a fast gait (0.2 s swing slots) and a pad
     threshold inside the gate's width, so that one 0.4 s window holds a lift-off where every group (basic step,
     overcoming step, threshold) acts."""
-    ctrl = TactileGaitController(robot, gait="tripod", smooth=True)
+    ctrl = make_controller("tactile", robot, smooth=True)
     return ctrl, ctrl.default_params().replace(swing_time=jnp.float32(0.2), tactile_threshold=jnp.float32(0.1),
                                                temperature=jnp.float32(0.1))
 

@@ -24,7 +24,7 @@ Two forms of the same rollout:
   number the tuning is judged by.
 
 Why truncated windows: over a whole walk the rollout is chaotic in its parameters. Over 1 m the exact
-gradient of the advance reaches 1e13-1e14 (scripts/fd_noise_tactile.py); over windows of a fraction of a
+gradient of the advance reaches 1e13-1e14 (docs/tuning.md); over windows of a fraction of a
 second it matches central differences (tests/test_tune.py). The windowed gradient is biased (it ignores
 how a change in one window moves the next window's start), in exchange for a variance that does not
 explode with the horizon.
@@ -33,7 +33,6 @@ explode with the horizon.
 from __future__ import annotations
 
 import dataclasses
-import math
 from typing import Any, Dict, Optional, Tuple
 
 import jax
@@ -44,6 +43,7 @@ from jax.flatten_util import ravel_pytree
 from hexjax.control.registry import CONTROLLERS, make_controller
 from hexjax.sim.compiled import arrays_digest
 from hexjax.sim.config import PhysicsConfig, RolloutConfig, physics_for
+from hexjax.sim.metrics import error_stats, travel_errors
 from hexjax.sim.rollout import rollout_function
 from hexjax.sim.windows import windowed_value_and_grad
 from hexjax.tune.config import TuneConfig
@@ -51,15 +51,6 @@ from hexjax.tune.space import ParamSpace
 from hexjax.world.presets import get_robot
 from hexjax.world.terrain import pad_terrain, sample
 
-
-
-def travel_errors(summary, distance: float):
-    """(dx, dy, dalpha) per env from `Summary.travel` (differentiable, truncated at window boundaries) in
-    the start frame of each env: dx = distance - advance (> 0: short), dy lateral (> 0: left)."""
-    yaw0 = summary.start_pose[:, 2]
-    c, s = jnp.cos(yaw0), jnp.sin(yaw0)
-    tx, ty, tyaw = summary.travel[:, 0], summary.travel[:, 1], summary.travel[:, 2]
-    return distance - (c * tx + s * ty), -s * tx + c * ty, tyaw
 
 
 def per_env_objective(summary, distance: float, weights: Dict[str, float]):
@@ -299,15 +290,13 @@ def evaluate_held_out(problem: Problem, u, fn=None, model=None, which: str = "he
     s = fn(model, problem.space.apply(u, problem.eval_params0), terr, keys)
     j = np.asarray(per_env_objective(s, problem.cfg.distance, problem.cfg.objective))
     dx, dy, da = (np.asarray(x) for x in travel_errors(s, problem.cfg.distance))
-    err = np.hypot(dx, dy)
     fell = np.asarray(s.fell)
-    out = {"objective": float(j.mean()), "goal_error_cm": 100 * float(err.mean()),
-           "rel_error_pct": 100 * float(err.mean()) / problem.cfg.distance, "dx_cm": 100 * float(dx.mean()),
-           "dy_cm": 100 * float(dy.mean()), "abs_dalpha_deg": math.degrees(float(np.abs(da).mean())),
-           "fall_pct": 100 * float(fell.mean()), "nan_envs": int(np.asarray(s.nan).sum())}
+    d = problem.cfg.distance
+    out = {"objective": float(j.mean()), **error_stats(dx, dy, da, d), "fall_pct": 100 * float(fell.mean()),
+           "nan_envs": int(np.asarray(s.nan).sum())}
     if len(problem.specs) > 1:  # the batch is split among the terrain families in blocks (`terrain_batch`)
         out["by_terrain"] = {name: {"n": int(sl.stop - sl.start), "objective": float(j[sl].mean()),
-                                    "goal_error_cm": 100 * float(err[sl].mean()),
+                                    "goal_error_cm": error_stats(dx[sl], dy[sl], da[sl], d)["goal_error_cm"],
                                     "fall_pct": 100 * float(fell[sl].mean())}
                              for name, sl in zip(problem.cfg.terrains, family_slices(len(j), len(problem.specs)))}
     return out

@@ -12,8 +12,9 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
-from hexjax.control.gait import GaitController, GaitParams
+from hexjax.control.gait import GaitParams
 from hexjax.control.perceive_support import PerceivingSupportPlan
+from hexjax.control.registry import make_controller
 from hexjax.control.support_gait import SupportPlanController
 from hexjax.perceive.grid import dem_grid
 from hexjax.sim.config import RolloutConfig
@@ -94,7 +95,7 @@ def run_chen2019(n: int = 16, seed: int = 0, robot: str = "chen2019", duration: 
         fp = GaitParams(step_length=jnp.float32(stride), step_height=jnp.float32(h),
                         swing_time=jnp.float32(phase_time), direction=jnp.float32(0.0),
                         body_height_offset=jnp.float32(0.0))
-        variants.append((f"fixed_h{round(100 * h)}cm", GaitController(rb, "tripod", dt=0.02), fp, False))
+        variants.append((f"fixed_h{round(100 * h)}cm", make_controller("gait", rb, dt=0.02), fp, False))
     chunk = chunk or n
     far = spec.start_x + spec.length
     res = {"config": {"robot": robot, "patches": n, "seed": seed, "duration_s": duration, "stride": stride,

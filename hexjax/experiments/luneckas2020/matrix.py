@@ -33,28 +33,18 @@ from hexjax.experiments.luneckas2020.walks import (DISTANCES, GAITS, METHODS, ST
                                                    errors_from, readout_index, robot_width, simulate_gait,
                                                    torso_strikes)
 from hexjax.experiments.runner import read_partial, write_partial
+from hexjax.sim.metrics import error_stats
 from hexjax.sim.physics import get_physics
 from hexjax.world.presets import get_robot
 from hexjax.world.terrain import LUNECKAS2020_CATEGORIES
 
 
-def _stats(x):
-    x = np.asarray(x, dtype=float)
-    x = x[np.isfinite(x)]
-    return (float(x.mean()), float(x.std())) if x.size else (math.nan, math.nan)
-
-
 def _cell(dx, dy, da, fell, stuck, nan, d):
+    """A cell's rates and its goal errors over the robots that stayed upright (`error_stats`' schema)."""
     ok = ~fell & ~nan
-    rel = 100 * np.hypot(dx, dy) / d
     out = {"n": int(dx.size), "n_upright": int(ok.sum()), "fall_rate": float(fell.mean()),
            "stuck_rate": float((stuck & ok).mean()), "nan_envs": int(nan.sum())}
-    for name, v in (("dx_cm", 100 * dx), ("dy_cm", 100 * dy), ("abs_dx_cm", 100 * np.abs(dx)),
-                    ("abs_dy_cm", 100 * np.abs(dy)), ("abs_dalpha_deg", np.degrees(np.abs(da))),
-                    ("error_cm", 100 * np.hypot(dx, dy)), ("rel_error_pct", rel)):
-        mean, std = _stats(np.where(ok, v, np.nan))
-        out[name] = mean
-        out[name.replace("_cm", "").replace("_deg", "").replace("_pct", "") + "_std"] = std
+    out.update(error_stats(dx, dy, da, d, keep=ok))
     return out
 
 
@@ -235,8 +225,8 @@ def _summary(res) -> Dict:
         for cat, dists in res["cells"]["wave"].items():
             for dkey in dists:
                 n_pairs += 1
-                wave_better += (res["cells"]["wave"][cat][dkey]["with"]["error_cm"]
-                                < res["cells"]["tripod"][cat][dkey]["with"]["error_cm"])
+                wave_better += (res["cells"]["wave"][cat][dkey]["with"]["goal_error_cm"]
+                                < res["cells"]["tripod"][cat][dkey]["with"]["goal_error_cm"])
     # the overall relative error of each method as the sum of its causes' parts (means over the cells)
     breakdown = {}
     for meth in METHODS:
@@ -269,8 +259,8 @@ def format_luneckas(res: Dict) -> str:
         for cat, dists in cats.items():
             for dkey, meths in dists.items():
                 for meth, c in meths.items():
-                    lines.append(f"{gait:6s} {cat:10s} {dkey:>3s} {meth:7s} {c['dx_cm']:5.1f}±{c['dx_std']:<5.1f} "
-                                 f"{c['dy_cm']:5.1f}±{c['dy_std']:<5.1f} {c['abs_dalpha_deg']:8.1f} {c['rel_error_pct']:6.1f} "
+                    lines.append(f"{gait:6s} {cat:10s} {dkey:>3s} {meth:7s} {c['dx_cm']:5.1f}±{c['dx_std_cm']:<5.1f} "
+                                 f"{c['dy_cm']:5.1f}±{c['dy_std_cm']:<5.1f} {c['abs_dalpha_deg']:8.1f} {c['rel_error_pct']:6.1f} "
                                  f"{100 * c['fall_rate']:4.0f}% {100 * c['stuck_rate']:4.0f}%")
     s = res["summary"]
     lines += ["", f"method lowers the relative error in {s['cells_with_lower']} of {s['cells_compared']} cells",
@@ -311,8 +301,8 @@ def plot_luneckas(res: Dict, stem: str) -> list:
     colours = {"wave": "#1f77b4", "tripod": "#d62728"}
     for gi, gait in enumerate(gaits):
         for mi, meth in enumerate(METHODS):
-            vals = [res["cells"][gait][c][dk][meth]["error_cm"] for dk in dkeys for c in cats]
-            errs = [res["cells"][gait][c][dk][meth]["error_std"] for dk in dkeys for c in cats]
+            vals = [res["cells"][gait][c][dk][meth]["goal_error_cm"] for dk in dkeys for c in cats]
+            errs = [res["cells"][gait][c][dk][meth]["goal_error_std_cm"] for dk in dkeys for c in cats]
             off = (2 * gi + mi - len(gaits) + 0.5) * w
             ax.bar(x + off, vals, w, yerr=errs, capsize=2, color=colours.get(gait, None),
                    alpha=1.0 if meth == "with" else 0.35, hatch="" if meth == "with" else "//",

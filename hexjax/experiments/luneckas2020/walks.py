@@ -14,7 +14,7 @@ from tqdm.auto import tqdm
 
 from hexjax.control.registry import make_controller
 from hexjax.control.tactile import TactileGaitController, overcome_height
-from hexjax.experiments.metrics import pose_errors
+from hexjax.sim.metrics import pose_errors
 from hexjax.sim.config import RolloutConfig
 from hexjax.sim.physics import get_physics, shared_config
 from hexjax.sim.rollout import rollout

@@ -19,6 +19,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from hexjax.control.avoid_gait import AvoidGaitController, fast_gait, field_params, small_robot_params
+from hexjax.control.registry import make_controller
 from hexjax.plan import avoid
 from hexjax.plan.avoid import AvoidConfig
 from hexjax.plan.fields import Fields, small_fields, straight_line_blocked
@@ -125,7 +126,7 @@ def run_closed_loop(n: int = 32, seed: int = 0, robot: str = "luneckas2020", n_T
     preset = get_physics(physics)
     backend = traced_backend(preset, "foot traces (the touch test)")
     rb = get_robot(robot)
-    ctrl = controller or AvoidGaitController(rb, avoid=AvoidConfig(n_T=n_T, max_cycles=40))
+    ctrl = controller or make_controller("avoid", rb, avoid=AvoidConfig(n_T=n_T, max_cycles=40))
     g, ap = field_setup(ctrl)
     _, k_box, k_roll = seed_keys(seed)
     if fields is None:

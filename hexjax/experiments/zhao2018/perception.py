@@ -14,8 +14,8 @@ import jax
 import numpy as np
 from tqdm.auto import tqdm
 
-from hexjax.control.avoid_gait import AvoidGaitController
 from hexjax.control.perceive_gait import PerceivingAvoidGait, map_bounds
+from hexjax.control.registry import make_controller
 from hexjax.experiments.zhao2018.closed_loop import field_setup, run_closed_loop, seeded_fields
 from hexjax.perceive.grid import GridMap, GridSpec
 from hexjax.perceive.sensors import get_sensor
@@ -31,7 +31,7 @@ def perceiving_controller(robot: str, sensor: str, n_T: int, cell: float, fields
     corridor, with 0.3 m round them (`map_bounds`)."""
     rb = get_robot(robot)
     lo, hi = map_bounds(fields, margin=0.3)
-    return PerceivingAvoidGait(rb, avoid=AvoidConfig(n_T=n_T, max_cycles=40), sensor=get_sensor(sensor, **sensor_overrides),
+    return make_controller("perceive", rb, avoid=AvoidConfig(n_T=n_T, max_cycles=40), sensor=get_sensor(sensor, **sensor_overrides),
                                grid=GridSpec.covering(lo, hi, cell), perceive_every=every,
                                obstacle_threshold=threshold)
 
@@ -61,7 +61,7 @@ def run_perception(n: int = 16, seed: int = 0, robot: str = "luneckas2020", sens
     rb = get_robot(robot)
     GridSpec(cell=cell).validate()  # the sensor and grid checked before any JAX work
     get_sensor(sensor, **sensor_overrides).validate(rb)
-    base = AvoidGaitController(rb, avoid=AvoidConfig(n_T=n_T, max_cycles=40))
+    base = make_controller("avoid", rb, avoid=AvoidConfig(n_T=n_T, max_cycles=40))
     _, ap = field_setup(base)
     fields, _ = seeded_fields(seed, n, ap)
     ctrl = perceiving_controller(robot, sensor, n_T, cell, fields, every, threshold, **sensor_overrides)

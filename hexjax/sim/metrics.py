@@ -1,4 +1,5 @@
-"""Positional errors at the goal (Luneckas 2020 Sect. 2.5) and batch statistics."""
+"""Positional errors at the goal (Luneckas 2020 Sect. 2.5) and their statistics: the one schema of goal errors
+every command, experiment and the tuner report (`error_stats`'s keys)."""
 
 from __future__ import annotations
 
@@ -51,8 +52,38 @@ def goal_errors(summary: Summary, distance: float, success_radius: float = 0.1) 
     return GoalErrors(dx=dx, dy=lateral, dalpha=dalpha, advance=advance, success=ok)
 
 
-def batch_stats(summary: Summary, errors: GoalErrors) -> Dict[str, float]:
-    """Means over the envs that stayed finite (NaN envs are counted, never averaged). Units: cm, deg, %, J."""
+def travel_errors(summary: Summary, distance: float):
+    """(dx, dy, dalpha) per env from `Summary.travel` (differentiable, truncated at gradient-window boundaries)
+    in each env's start frame, the same convention as `pose_errors`: what the tuner's objective reads."""
+    yaw0 = summary.start_pose[:, 2]
+    c, s = jnp.cos(yaw0), jnp.sin(yaw0)
+    tx, ty, tyaw = summary.travel[:, 0], summary.travel[:, 1], summary.travel[:, 2]
+    return distance - (c * tx + s * ty), -s * tx + c * ty, tyaw
+
+
+def error_stats(dx, dy, dalpha, distance: float, keep=None) -> Dict[str, float]:
+    """Means and standard deviations of the goal errors over the envs of `keep` (default: the finite ones), in
+    one schema: `dx_cm`, `dy_cm` (signed), `abs_dx_cm`, `abs_dy_cm`, `abs_dalpha_deg`, `goal_error_cm`
+    (hypot(dx, dy)) and `rel_error_pct` (the goal error over the planned `distance`, Luneckas 2020's relative
+    error), each with a `<name>_std` twin whose unit stays last (`dx_std_cm`). NaN where no env is kept."""
+    dx, dy, da = (np.asarray(v, dtype=np.float64) for v in (dx, dy, dalpha))
+    if keep is None:
+        keep = np.isfinite(dx) & np.isfinite(dy)
+    keep = np.asarray(keep, bool)
+    err = np.hypot(dx, dy)
+    out: Dict[str, float] = {}
+    for name, unit, v in (("dx", "cm", 100 * dx), ("dy", "cm", 100 * dy), ("abs_dx", "cm", 100 * np.abs(dx)),
+                          ("abs_dy", "cm", 100 * np.abs(dy)), ("abs_dalpha", "deg", np.degrees(np.abs(da))),
+                          ("goal_error", "cm", 100 * err), ("rel_error", "pct", 100 * err / distance)):
+        x = v[keep]
+        out[f"{name}_{unit}"] = float(x.mean()) if x.size else math.nan
+        out[f"{name}_std_{unit}"] = float(x.std()) if x.size else math.nan
+    return out
+
+
+def batch_stats(summary: Summary, errors: GoalErrors, distance: float) -> Dict[str, float]:
+    """`error_stats` over the envs that stayed finite (NaN envs are counted, never averaged), with the rates,
+    the advance, energy and path. Units: cm, deg, %, J."""
     nan = np.asarray(summary.nan)
     good = ~nan
     n_good = max(int(good.sum()), 1)
@@ -61,20 +92,10 @@ def batch_stats(summary: Summary, errors: GoalErrors) -> Dict[str, float]:
         x = np.asarray(x)[good]
         return float(x.mean()) if x.size else math.nan
 
-    def std(x):
-        x = np.asarray(x)[good]
-        return float(x.std()) if x.size else math.nan
-
     return {
         "n": int(nan.size),
         "nan": int(nan.sum()),
-        "abs_dx_cm": 100 * mean(np.abs(errors.dx)),
-        "abs_dy_cm": 100 * mean(np.abs(errors.dy)),
-        "abs_dalpha_deg": math.degrees(mean(np.abs(errors.dalpha))),
-        "dx_cm": 100 * mean(errors.dx),
-        "dx_std_cm": 100 * std(errors.dx),
-        "dy_cm": 100 * mean(errors.dy),
-        "dy_std_cm": 100 * std(errors.dy),
+        **error_stats(errors.dx, errors.dy, errors.dalpha, distance, keep=good),
         "advance_m": mean(errors.advance),
         "fall_pct": 100 * float(np.asarray(summary.fell)[good].sum()) / n_good,
         "success_pct": 100 * float(np.asarray(errors.success).mean()),
