@@ -33,7 +33,8 @@ def test_shipped_presets_load_with_the_papers_numbers():
         get_robot(name).validate()
     assert set(experiments()) >= {"luneckas2020", "yu2019-step", "yu2019-ditch", "zhao2018", "zhao2018-mjx",
                                   "zhao2018-perception", "chen2019", "chen2019-incenter", "chen2019-perception"}
-    assert set(commands()) == {"evaluate", "bench", "tune", "render", "ppo", "terrain", "robustness", "perceive", "fidelity"}
+    assert set(commands()) == {"evaluate", "bench", "tune", "render", "ppo", "terrain", "robustness", "perceive", "fidelity",
+                              "families"}
     # Zhao 2018 Sect. 5: Kinect V1 57 x 43 deg, 0.8-4.0 m; Velodyne PUCK 360 x 30 deg, up to 100 m
     from hexjax.perceive.sensors import get_sensor
     kin, puck = get_sensor("kinect_v1"), get_sensor("velodyne_puck")
