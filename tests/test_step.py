@@ -65,3 +65,46 @@ def test_accumulators_worked_by_hand():
     assert a["energy"] == pytest.approx(3.0) and bool(a["nan"]) and bool(a["fell"])
     assert a["fall_time"] == pytest.approx(2 * dt) and a["min_height"] == pytest.approx(0.02, abs=1e-7)
     np.testing.assert_array_equal(a["tactile_steps"], [3, 0, 0, 0, 0, 3])
+
+
+@pytest.mark.cost(60)
+def test_the_mjx_and_c_backends_run_one_controller_phase_and_one_summarise(monkeypatch):
+    """Both backends run their controller through `step.controller_phase` and build their `Summary` with
+    `step.summarise`: with those two wrapped here, the MJX scan and the MuJoCo C backend each call the phase,
+    and the mark the wrapped `summarise` leaves (an energy of -7 J) is in both backends' summaries."""
+    from hexjax.control.registry import make_controller
+    from hexjax.sim import rollout as rollout_module
+    from hexjax.sim import step
+    from hexjax.sim.backends import mujoco_c
+    from hexjax.world.presets import get_robot, get_terrain
+    from hexjax.world.terrain import sample
+
+    robot = get_robot("luneckas2020")
+    ctrl = make_controller("gait", robot)
+    terrain = sample(get_terrain("flat"), jax.random.PRNGKey(0), 2)
+    phase_calls, summarise = [], step.summarise
+
+    def phase(*args, **kwargs):
+        phase_calls.append(1)
+        return step_phase(*args, **kwargs)
+
+    def marked(acc, qpos_end, final_state, **traces):
+        return summarise(dict(acc, energy=jnp.full_like(acc["energy"], -7.0)), qpos_end, final_state, **traces)
+
+    step_phase = step.controller_phase
+    caches = (rollout_module._compiled, mujoco_c._controller_fns)
+    monkeypatch.setattr(step, "controller_phase", phase)
+    monkeypatch.setattr(step, "summarise", marked)
+    try:
+        for backend in ("mjx", "c"):
+            for c in caches:  # the compiled functions of earlier tests hold the unwrapped ones
+                c.cache_clear()
+            phase_calls.clear()
+            s = rollout_module.rollout(robot, terrain, ctrl, ctrl.default_params(), 0.1, jax.random.PRNGKey(1),
+                                       backend=backend, nthread=1)
+            assert phase_calls, backend
+            assert np.all(np.asarray(s.energy) == -7.0), (backend, s.energy)
+            assert np.all(np.isfinite(np.asarray(s.end_pose))), backend
+    finally:
+        for c in caches:  # nor may a later test get the wrapped ones
+            c.cache_clear()

@@ -27,8 +27,8 @@ from hexjax.sim.forward_mode import check_model, forward_solver
 from hexjax.sim.implicit import REMAT_POLICY, implicit_solver
 from hexjax.sim.model import sim_model
 from hexjax.sim.mjx_rules import integrator_rule, reversible_solver, rotation_rule
-from hexjax.sim.step import (Summary, control_steps, end_pose, make_control_step, make_env_start, settle_steps,
-                             total_physics_steps)
+from hexjax.sim import step as sim_step  # summarise looked up on the module: tests/test_step.py watches it
+from hexjax.sim.step import control_steps, make_control_step, make_env_start, settle_steps, total_physics_steps
 from hexjax.world.robot import RobotSpec
 from hexjax.world.terrain import Terrain
 
@@ -86,7 +86,7 @@ def _compiled(robot: RobotSpec, physics: PhysicsConfig, sensors: SensorConfig, c
             rec = jax.tree_util.tree_map(lambda a: a[n_settle:], rec)
             extra = dict(trace=rec["pose"], foot_trace=rec["feet"], ctrl_trace=rec["ctrl"], qpos_trace=rec["qpos"],
                          force_trace=rec["force"], tactile_trace=rec["tactile"])
-        return Summary(end_pose=end_pose(d.qpos), final_state=cstate, **extra, **acc)
+        return sim_step.summarise(acc, d.qpos, cstate, **extra)
 
     def batched(m_shared, params, terrain, keys, d_template=None, pert=None):
         run = jax.vmap(single, in_axes=(None, 0 if params_batched else None, 0, 0, None, 0 if perturbed else None))

@@ -3,15 +3,20 @@ the MuJoCo C backend's summary is accumulated with.
 
 A control step (period `controller.dt`, `substeps` physics steps):
   1. terrain slots follow the feet, giving the env's model (`env_view`), and the sensors are read;
-  2. the controller maps (params, state, obs) to joint targets (held at the settle posture while settling);
+  2. `controller_phase`: the controller maps (params, state, obs) to joint targets, held at the settle posture
+     while settling, with a perturbation's sensing and action effects around it;
   3. `physics` runs the substeps; a step that goes non-finite is undone (`keep_finite`) and flagged;
   4. `accumulate` folds the step into the env's `Summary` fields: the fall test (`fall_state`), the start
      pose, energy, path length, travel, tilt and height extremes, tactile counts.
-`make_control_step` composes 1-4 (with the rollout's gradient truncation and bounds) for `lax.scan`.
+`make_control_step` composes 1-4 (with the rollout's gradient truncation and bounds) for `lax.scan`; the
+windowed gradient (`hexjax.sim.windows`) runs that same step, and the MuJoCo C backend
+(`hexjax.sim.backends.mujoco_c`) calls `start_yaw`, `controller_phase`, `accumulate` and `summarise` between
+its physics calls, so every backend's start, controller phase and summary are these functions.
 """
 
 from __future__ import annotations
 
+import contextlib
 import math
 from typing import Any, Optional
 
@@ -184,6 +189,43 @@ def end_pose(qpos):
     return jnp.stack([qpos[..., 0], qpos[..., 1], quat_yaw(qpos[..., 3:7])], -1)
 
 
+def summarise(acc, qpos_end, final_state, **traces) -> Summary:
+    """The `Summary` of a rollout from its accumulators (`accumulate`), the generalised positions at its end
+    (..., nq), the controller state after its last step and any of the per-step traces (`Summary`'s *_trace
+    fields). Every backend builds its summary here."""
+    return Summary(end_pose=end_pose(qpos_end), final_state=final_state, **traces, **acc)
+
+
+# The controller phase -----------------------------------------------------------------------------------------
+def start_yaw(cfg: RolloutConfig, key):
+    """(heading rad (), the controller's init key) of one env from its key: the heading uniform within
+    +-`cfg.yaw_noise`."""
+    k_yaw, k_ctrl = jax.random.split(key)
+    return jax.random.uniform(k_yaw, (), minval=-cfg.yaw_noise, maxval=cfg.yaw_noise), k_ctrl
+
+
+def controller_phase(controller, sensors: SensorConfig, params, cstate, obs, i, n_settle: int, ctrl0, pert=None,
+                     pstate=None, sense=None):
+    """The controller's part of control step i (0-based, settling included) of one env: (controller state, joint
+    targets, perturbation state, what the controller read). While settling (i < n_settle) the targets are `ctrl0`
+    and the state stays as it was. With `pert` (one env's `Perturbation`) the controller reads the draw's
+    perturbed sensing (`hexjax.sim.perturb.observe`) and the targets go through its latency and locked leg
+    (`hexjax.sim.perturb.act`, with `pstate`); `obs` stays the true reading. `sense(cstate) -> cstate`, if given,
+    runs before the controller's step (the range sensor's scan)."""
+    t_walk = (i - n_settle) * controller.dt
+    seen = obs if pert is None else perturb.observe(obs, pert, i, t_walk, sensors)
+    if sense is not None:
+        cstate = sense(cstate)
+    with jax.named_scope("hx.controller"):
+        new_cstate, action = controller.step(params, cstate, seen)
+    walking = i >= n_settle
+    action = jnp.where(walking, action, ctrl0)
+    cstate = jax.tree_util.tree_map(lambda a, b: jnp.where(walking, a, b), new_cstate, cstate)
+    if pert is not None:
+        pstate, action = perturb.act(pstate, action, obs.qpos, pert, t_walk)
+    return cstate, action, pstate, seen
+
+
 # Model, sensors and physics of one env ---------------------------------------------------------------------
 def env_view(sm: SimModel, sensors: SensorConfig, terrain: Terrain, d, base=None):
     """(model, data, obs) of one env at data d: slots moved onto the terrain boxes nearest the feet and torso
@@ -247,8 +289,7 @@ def make_env_start(sm: SimModel, cfg: RolloutConfig, controller):
         return ctrl0_default if ctrl0 is None else ctrl0
 
     def start(m_shared, params, key, d_template=None):
-        k_yaw, k_ctrl = jax.random.split(key)
-        yaw0 = jax.random.uniform(k_yaw, (), minval=-cfg.yaw_noise, maxval=cfg.yaw_noise)
+        yaw0, k_ctrl = start_yaw(cfg, key)
         d0 = sm.init_data(jnp.stack([0.0, 0.0, yaw0]), d_template)
         cstate0 = controller.init(params, k_ctrl)
         ctrl0 = settle_action(params)
@@ -281,21 +322,16 @@ def _report_progress(i):
         sink(int(i))
 
 
-class progress_to:
-    """Context manager: while open, a rollout compiled with `RolloutConfig.progress_every` > 0 calls
-    `sink(control_step_index)` from the device every `progress_every` steps (e.g. to move a tqdm bar).
-    The index counts settling steps too; the total is settle_time / dt + ceil(duration / dt)."""
-
-    def __init__(self, sink):
-        self.sink = sink
-
-    def __enter__(self):
-        self.prev, _PROGRESS_SINK[0] = _PROGRESS_SINK[0], self.sink
-        return self
-
-    def __exit__(self, *exc):
-        _PROGRESS_SINK[0] = self.prev
-        return False
+@contextlib.contextmanager
+def progress_to(sink):
+    """While open, a rollout compiled with `RolloutConfig.progress_every` > 0 calls `sink(control_step_index)`
+    from the device every `progress_every` steps (e.g. to move a tqdm bar). The index counts settling steps too;
+    the total is settle_time / dt + ceil(duration / dt)."""
+    prev, _PROGRESS_SINK[0] = _PROGRESS_SINK[0], sink
+    try:
+        yield
+    finally:
+        _PROGRESS_SINK[0] = prev
 
 
 def make_control_step(sm: SimModel, sensors: SensorConfig, cfg: RolloutConfig, controller, n_settle: int):
@@ -331,24 +367,19 @@ def make_control_step(sm: SimModel, sensors: SensorConfig, cfg: RolloutConfig, c
             d, cstate = clip_cotangent((d, cstate), cfg.grad_clip)
         with jax.named_scope("hx.env_view"):  # scopes name the stages in profiles (scripts/profile_grad.py)
             m, d, obs = env_view(sm, sensors, terrain, d, base=m_shared)
-        obs_true = obs
         if pert is not None:
-            t_walk = (i - n_settle) * controller.dt
-            m = perturb.model(sm, m, pert, t_walk)
-            obs = perturb.observe(obs, pert, i, t_walk, sensors)
-        if sensor is not None:
-            if sense_key is None:
-                raise ValueError(f"{type(controller).__name__} has a range sensor: its control step needs a "
-                                 "sense_key (one PRNG key per env) to draw the scans' noise")
-            cstate = jax.lax.cond((i >= n_settle) & ((i - n_settle) % every == 0),
-                                  lambda c: sense(c, i, params, terrain, d, sense_key), lambda c: c, cstate)
-        with jax.named_scope("hx.controller"):
-            new_cstate, action = controller.step(params, cstate, obs)
-        walking = i >= n_settle
-        action = jnp.where(walking, action, ctrl0)
-        cstate = jax.tree_util.tree_map(lambda a, b: jnp.where(walking, a, b), new_cstate, cstate)
-        if pert is not None:
-            pstate, action = perturb.act(carry[3], action, d.qpos[7:], pert, t_walk)
+            m = perturb.model(sm, m, pert, (i - n_settle) * controller.dt)
+        if sensor is not None and sense_key is None:
+            raise ValueError(f"{type(controller).__name__} has a range sensor: its control step needs a "
+                             "sense_key (one PRNG key per env) to draw the scans' noise")
+
+        def scan(c):
+            return jax.lax.cond((i >= n_settle) & ((i - n_settle) % every == 0),
+                                lambda c: sense(c, i, params, terrain, d, sense_key), lambda c: c, c)
+
+        cstate, action, pstate, seen = controller_phase(controller, sensors, params, cstate, obs, i, n_settle, ctrl0,
+                                                        pert, carry[3] if pert is not None else None,
+                                                        scan if sensor is not None else None)
         if cfg.grad_clip is not None:  # the physics' gradient reaches the controller through the action
             action = clip_cotangent(action, cfg.grad_clip)
         d = d.replace(ctrl=action)
@@ -356,13 +387,12 @@ def make_control_step(sm: SimModel, sensors: SensorConfig, cfg: RolloutConfig, c
         d_new, finite = keep_finite(d_new, d, sm.impl == "warp")
         with jax.named_scope("hx.accumulate"):
             acc = accumulate(acc, cfg, i, n_settle, controller.dt, d.qpos, d_new.qpos, finite, jnp.sum(power) * dt,
-                             obs_true.tactile, terrain.ground_z,
-                             slip(sm.robot, d.qpos, d_new.qpos, obs_true.foot_contact))
+                             obs.tactile, terrain.ground_z, slip(sm.robot, d.qpos, d_new.qpos, obs.foot_contact))
         out = None
         if cfg.record:
             out = dict(pose=jnp.concatenate([d_new.qpos[:3], quat_yaw(d_new.qpos[3:7])[None]]),
-                       feet=d_new.site_xpos[foot_sites], ctrl=controller.trace(cstate, obs),
-                       qpos=d_new.qpos, force=obs_true.foot_force, tactile=obs_true.tactile)
+                       feet=d_new.site_xpos[foot_sites], ctrl=controller.trace(cstate, seen),
+                       qpos=d_new.qpos, force=obs.foot_force, tactile=obs.tactile)
         carry = (d_new, cstate, acc) if pert is None else (d_new, cstate, acc, pstate)
         return carry, out
 

@@ -40,7 +40,7 @@ from hexjax.sim import implicit
 from hexjax.sim.config import PhysicsConfig, RolloutConfig, SensorConfig
 from hexjax.sim.model import sim_model
 from hexjax.sim.rollout import check_static, solver_context
-from hexjax.sim.step import GRAD_FIELDS, Summary, end_pose, make_control_step, make_env_start, settle_steps
+from hexjax.sim.step import GRAD_FIELDS, make_control_step, make_env_start, settle_steps, summarise
 
 # accumulators that are running extremes, not sums: a window's end passes their cotangent on only if the
 # extreme at that end is the rollout's final one (no later window moved it)
@@ -175,7 +175,7 @@ def windowed_value_and_grad(robot, controller, duration: float, loss, *, physics
             def total(xf):
                 st, cs, acc = fin_rebuild(xf)
                 d = jax.vmap(lambda s, d0: _assemble(like, s, *_data_parts(d0)[1:]))(st, d_f)
-                summary = Summary(end_pose=end_pose(d.qpos), final_state=cs, **acc)
+                summary = summarise(acc, d.qpos, cs)
                 j = loss(summary)
                 return jnp.sum(j), (summary, j)
 

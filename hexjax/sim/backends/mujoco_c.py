@@ -11,8 +11,9 @@ How it differs from the MJX path, and why:
   per pad, as `read_obs` computes from MJX's solver rows.
 - The controller runs as JAX on the host between control steps, vmapped over the envs of a chunk; the physics
   of one control step (dt / timestep substeps) is one `Rollout.rollout` call over the chunk.
-- The summary is folded by `hexjax.sim.step.accumulate`, the MJX rollout's own arithmetic, in float32 (MuJoCo
-  C's state is float64).
+- The start heading, the controller phase (settle posture, perturbed sensing and action) and the summary are the
+  MJX control step's own functions (`hexjax.sim.step`: `start_yaw`, `controller_phase`, `accumulate`,
+  `summarise`), in float32 (MuJoCo C's state is float64).
 - Forward only (no gradients). Of the per-step traces only the torso's (`Summary.trace`: x, y, z, yaw) is kept
   (`RolloutConfig.record`). At the very first control step the sensors read zero (no step has run yet); with the
   default settle time that step is a settling step, whose action is fixed.
@@ -39,7 +40,8 @@ from hexjax.sim.mjcf import PARKED_Z, build_mjcf, compile_mjcf, sensor_layout
 from hexjax.sim.model import actuator_forces, obs_from_sensordata
 from hexjax.sim.perturb import MIN_FRICTION
 from hexjax.sim.slip import slip
-from hexjax.sim.step import Summary, accumulate, end_pose, init_acc, settle_steps, substeps
+from hexjax.sim import step as sim_step  # the shared functions looked up on the module: tests/test_step.py watches them
+from hexjax.sim.step import accumulate, init_acc, settle_steps, start_yaw, substeps
 from hexjax.world.robot import RobotSpec
 
 _FULL = mujoco.mjtState.mjSTATE_FULLPHYSICS
@@ -166,9 +168,8 @@ def rollout_c(robot: RobotSpec, terrain, controller, params, n_ctrl: int, keys, 
     chunk = max(1, min(int(chunk), b))
     n_chunks = math.ceil(b / chunk)
 
-    yaw0 = np.asarray(jax.vmap(lambda k: jax.random.uniform(jax.random.split(k)[0], (), minval=-config.yaw_noise,
-                                                            maxval=config.yaw_noise))(keys))
-    k_ctrl = jax.vmap(lambda k: jax.random.split(k)[1])(keys)
+    yaw0, k_ctrl = jax.vmap(lambda k: start_yaw(config, k))(keys)
+    yaw0 = np.asarray(yaw0)
     step_fn, init_fn, ctrl0_fn = _controller_fns(controller, sensors, 0 if params_batched else None,
                                                  perturbation is not None, n_settle)
     pert_all = None if perturbation is None else jax.device_get(perturbation)
@@ -189,8 +190,8 @@ def rollout_c(robot: RobotSpec, terrain, controller, params, n_ctrl: int, keys, 
             models = _models(tp, box_pos[idx], box_half[idx], box_valid[idx], ground_z[idx], pert)
             cstate = init_fn(prm, k_ctrl[idx])
             ctrl0 = ctrl0_fn(prm)
-            ctrl0 = np.broadcast_to(tp.ctrl0 if ctrl0 is None else np.asarray(ctrl0), (chunk, nu)).astype(np.float64)
-            pstate = None if pert is None else jax.vmap(perturb.init_state)(jnp.asarray(ctrl0, jnp.float32))
+            ctrl0 = np.broadcast_to(tp.ctrl0 if ctrl0 is None else np.asarray(ctrl0), (chunk, nu)).astype(np.float32)
+            pstate = None if pert is None else jax.vmap(perturb.init_state)(jnp.asarray(ctrl0))
             limp = None if pert is None else np.nonzero(np.asarray(pert.fault_kind) == perturb.LIMP)[0]
             # initial state: neutral stance at (0, 0, yaw0), joints at the settle posture
             qpos = np.broadcast_to(tp.qpos0, (chunk, nq)).copy()
@@ -205,31 +206,23 @@ def rollout_c(robot: RobotSpec, terrain, controller, params, n_ctrl: int, keys, 
             poses = []
             acc = jax.vmap(init_acc)(jnp.stack([jnp.zeros(chunk), jnp.zeros(chunk), jnp.asarray(yw, jnp.float32)], -1))
             gz = jnp.asarray(ground_z[idx], jnp.float32)
-            extra = () if pert is None else (pert, pstate, ctrl0.astype(np.float32))
             if c == 0:  # compile the controller step (timed apart, as the MJX rollout's compile is)
                 t0 = time.perf_counter()
                 jax.block_until_ready(step_fn(prm, cstate, qpos, state[:, 1 + nq:1 + nq + nv], sens, state[:, 0],
-                                              np.int32(0), *extra))
+                                              np.int32(0), ctrl0, pert, pstate))
                 compile_s = time.perf_counter() - t0
             for i in range(n_settle + n_ctrl):
                 q, v = state[:, 1:1 + nq], state[:, 1 + nq:1 + nq + nv]
-                if pert is None:
-                    new_cstate, action, tactile, contact = step_fn(prm, cstate, q, v, sens, state[:, 0], np.int32(i))
-                    if i >= n_settle:
-                        cstate = new_cstate
-                        action = np.asarray(action, np.float64)
-                    else:
-                        action = ctrl0
-                else:
+                if pert is not None:
                     # as the MJX step: a limp leg's gains are zero from its onset (the model for this step)
                     t_walk = (i - n_settle) * controller.dt
                     for e in limp:
                         if float(pert.fault_time[e]) <= t_walk < float(pert.fault_time[e]) + controller.dt:
                             _gains(tp, models[e], np.where(np.arange(nu) // 3 == int(pert.fault_leg[e]), 0.0,
                                                            float(pert.kp_scale[e])))
-                    cstate, pstate, action, tactile, contact = step_fn(prm, cstate, q, v, sens, state[:, 0],
-                                                                       np.int32(i), *extra[:1], pstate, extra[2])
-                    action = np.asarray(action, np.float64)
+                cstate, action, pstate, tactile, contact = step_fn(prm, cstate, q, v, sens, state[:, 0], np.int32(i),
+                                                                   ctrl0, pert, pstate)
+                action = np.asarray(action, np.float64)
                 control = np.repeat(action[:, None, :], n_sub, axis=1)
                 pool.rollout(models, datas, state, control, control_spec=mujoco.mjtState.mjSTATE_CTRL,
                              nstep=n_sub, state=st_out, sensordata=sd_out, skip_checks=True)
@@ -256,36 +249,24 @@ def rollout_c(robot: RobotSpec, terrain, controller, params, n_ctrl: int, keys, 
     final = jax.tree_util.tree_map(cat, *[o[1] for o in outs])
     q_end = cat(*[o[2] for o in outs])
     trace = cat(*[o[3] for o in outs]) if config.record else None
-    return Summary(end_pose=end_pose(q_end), final_state=final, trace=trace, **acc), compile_s
+    return sim_step.summarise(acc, q_end, final, trace=trace), compile_s
 
 
 @functools.lru_cache(maxsize=16)
 def _controller_fns(controller, sensors: SensorConfig, p_axis, perturbed: bool = False, n_settle: int = 0):
-    """Jitted, vmapped controller step (from MuJoCo's sensordata), init and settle posture of one chunk. With
-    `perturbed` the step also takes the chunk's draws, their `PerturbState` and the settle posture, and does
-    what the MJX control step does around the controller: perturbed readings in, the settle posture while
-    settling, latency and a locked leg on the way out; the tactile flags it returns are the true ones."""
-    def step(params, cstate, qpos, qvel, sens, t, i):
+    """Jitted, vmapped controller step of one chunk (from MuJoCo's sensordata through the MJX control step's
+    `controller_phase`: the settle posture while settling and, with `perturbed`, the draws' sensing and action
+    effects), its init and its settle posture. The step returns (controller state, targets, perturbation state,
+    the true tactile flags, feet in contact)."""
+    def step(params, cstate, qpos, qvel, sens, t, i, ctrl0, pert, pstate):
         obs = obs_from_sensordata(sensors, qpos.astype(jnp.float32), qvel.astype(jnp.float32),
                                   sens.astype(jnp.float32), t.astype(jnp.float32))
-        new, action = controller.step(params, cstate, obs)
-        return new, action, obs.tactile, obs.foot_contact
+        cstate, action, pstate, _ = sim_step.controller_phase(controller, sensors, params, cstate, obs, i, n_settle,
+                                                              ctrl0, pert, pstate)
+        return cstate, action, pstate, obs.tactile, obs.foot_contact
 
-    def step_perturbed(params, cstate, qpos, qvel, sens, t, i, pert, pstate, ctrl0):
-        obs = obs_from_sensordata(sensors, qpos.astype(jnp.float32), qvel.astype(jnp.float32),
-                                  sens.astype(jnp.float32), t.astype(jnp.float32))
-        t_walk = (i - n_settle) * controller.dt
-        new, action = controller.step(params, cstate, perturb.observe(obs, pert, i, t_walk, sensors))
-        walking = i >= n_settle
-        action = jnp.where(walking, action, ctrl0)
-        cstate = jax.tree_util.tree_map(lambda a, b: jnp.where(walking, a, b), new, cstate)
-        pstate, action = perturb.act(pstate, action, obs.qpos, pert, t_walk)
-        return cstate, pstate, action, obs.tactile, obs.foot_contact
-
-    if perturbed:
-        step_b = jax.jit(jax.vmap(step_perturbed, in_axes=(p_axis, 0, 0, 0, 0, 0, None, 0, 0, 0)))
-    else:
-        step_b = jax.jit(jax.vmap(step, in_axes=(p_axis, 0, 0, 0, 0, 0, None)))
+    e = 0 if perturbed else None  # the draws and their state: per env, or None
+    step_b = jax.jit(jax.vmap(step, in_axes=(p_axis, 0, 0, 0, 0, 0, None, 0, e, e)))
     init_b = jax.jit(jax.vmap(controller.init, in_axes=(p_axis, 0)))
     # (n, nu) for batched params, (nu,) for shared ones (broadcast by the caller), or None: the stance
     ctrl0_b = jax.jit(jax.vmap(controller.initial_action) if p_axis == 0 else controller.initial_action)
