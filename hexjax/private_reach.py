@@ -3,10 +3,9 @@ written against. A private module may change in any release, so `tests/test_priv
 the files to re-read, when an installed version differs from the one here, and when a file reaches into a
 package's private modules without being listed. The pins in constraints.txt keep `make setup` on these.
 
-MJX's internals are patched at trace time in `hexjax.sim.mjx_rules` (the reversible solver, the rotation and
-integrator rules, swapped in by context managers); `hexjax.sim.implicit` and `hexjax.sim.forward_mode` read
-MJX's solver and constraint code to differentiate it; `hexjax.sim.model` reads MJX's collision driver and
-contact forces; `hexjax.sim.backends.warp_cpu` replays Warp's calls on a CPU.
+MJX's internals are all in `hexjax.sim.internals` (its package docstring says what each file patches or reads,
+and `solver_context` is the one context a rollout's solve is traced under), MuJoCo Warp's CPU replay among them.
+JAX's private modules are read by the compiled-program cache, the persistent cache and PPO.
 """
 
 # package (distribution name) -> the version the reaches were written against
@@ -17,8 +16,9 @@ PRIVATE = {"mujoco-mjx": ("mujoco.mjx._src", "mjx._src", "mujoco_warp._src"),
            "warp-lang": ("warp._src",),
            "jax": ("jax._src",)}
 USERS = {
-    "mujoco-mjx": ("hexjax/sim/model.py", "hexjax/sim/implicit.py", "hexjax/sim/forward_mode.py",
-                   "hexjax/sim/mjx_rules.py", "hexjax/sim/backends/warp_cpu.py", "hexjax/rl/env.py"),
-    "warp-lang": ("hexjax/sim/backends/warp_cpu.py",),
-    "jax": ("hexjax/sim/compiled.py", "hexjax/sim/implicit.py", "hexjax/rl/ppo.py", "hexjax/cache.py"),
+    "mujoco-mjx": ("hexjax/sim/internals/contacts.py", "hexjax/sim/internals/implicit.py",
+                   "hexjax/sim/internals/forward_mode.py", "hexjax/sim/internals/rules.py",
+                   "hexjax/sim/internals/warp_cpu.py"),
+    "warp-lang": ("hexjax/sim/internals/warp_cpu.py",),
+    "jax": ("hexjax/sim/compiled.py", "hexjax/sim/internals/implicit.py", "hexjax/rl/ppo.py", "hexjax/cache.py"),
 }

@@ -179,7 +179,7 @@ def main():
                     help="programs: both = forward and value_and_grad; jvp = the gradient in forward mode "
                          "(scripts/forward_grad_probe.py's program, its walk only: no --settle); jvpm = the same "
                          "with the probe's jvpm rule (the solver's factor, the update's derivative written out); "
-                         "jvpf = the package's forward-mode rule (hexjax.sim.forward_mode)")
+                         "jvpf = the package's forward-mode rule (hexjax.sim.internals.forward_mode)")
     ap.add_argument("--duration", type=float, default=None,
                     help="s walked, instead of the config's (a short one keeps the trace small)")
     ap.add_argument("--settle", type=float, default=None, help="s of settling, instead of RolloutConfig's")

@@ -59,7 +59,7 @@ class TestAgainstTheMjxWalk:
 
     def test_warp_backend_walks_like_mjx(self, mjx_run):
         _warp()
-        from hexjax.sim.backends import warp_cpu
+        from hexjax.sim.internals import warp_cpu
         recorded, replayed = warp_cpu.STATS["recorded"], warp_cpu.STATS["replayed"]
         walk = lambda: rollout(ROBOT, TERRAIN, CTRL, CTRL.default_params(), SECONDS, jax.random.PRNGKey(1), backend="warp")
         out = walk()
@@ -109,14 +109,14 @@ def _warp():
 
 def test_warp_cpu_hessian_launch_gives_the_same_steps():
     """On a CPU, hexjax launches MuJoCo Warp's elliptic-cone Hessian kernel with one thread per matrix element
-    looping over the contacts (`hexjax.sim.backends.warp_cpu`). 60 MuJoCo Warp steps of 2 worlds, the robot
+    looping over the contacts (`hexjax.sim.internals.warp_cpu`). 60 MuJoCo Warp steps of 2 worlds, the robot
     standing on the elliptic cone with its joints driven 0.3 rad off the stance so that the feet slip, give the
     same state bit for bit with and without it. The kernel matters here: with its launch skipped `qpos` ended up
     to 1.2e-3 elsewhere, and with only the first 3 contacts summed the test failed (both checked once, 2026-11-29)."""
     wp = _warp()
     from mujoco.mjx.third_party import mujoco_warp as mjw
 
-    from hexjax.sim.backends import warp_cpu
+    from hexjax.sim.internals import warp_cpu
     sm = sim_model(ROBOT, PhysicsConfig(cone="elliptic"), impl="warp")  # the model and pool sizes hexjax's walks use
     m = sm.mj_model
     d = mujoco.MjData(m)

@@ -1,4 +1,4 @@
-"""Forward mode through MJX's constraint solve (`hexjax.sim.forward_mode`): the gradient it carries forward equals
+"""Forward mode through MJX's constraint solve (`hexjax.sim.internals.forward_mode`): the gradient it carries forward equals
 reverse mode's through the implicit solve, and what it does not handle is refused before tracing. Its matrix-free
 products of the contact rows are checked against MJX's rows in tests/test_implicit.py (they share its standing
 state)."""
@@ -13,7 +13,7 @@ from jax.flatten_util import ravel_pytree
 
 from hexjax.sim.compiled import Compiled, arrays_digest
 from hexjax.sim.config import PhysicsConfig, RolloutConfig, physics_for
-from hexjax.sim.forward_mode import check_model
+from hexjax.sim.internals.forward_mode import check_model
 from hexjax.sim.model import sim_model
 from hexjax.sim.rollout import rollout_function
 from hexjax.tune.config import load_tune_config

@@ -1,8 +1,8 @@
-"""Implicit differentiation of MJX's constraint solve (`hexjax.sim.implicit`): same values as MJX, and where
+"""Implicit differentiation of MJX's constraint solve (`hexjax.sim.internals.implicit`): same values as MJX, and where
 the solver has converged the same derivatives as differentiating its unrolled Newton iterations, which
 match central differences. The rollout-level checks (per parameter group, against central differences and
 against the unrolled path) are in tests/test_tune.py. Forward mode's matrix-free contact rows
-(`hexjax.sim.forward_mode`) are checked here too, on the same standing state; its gradient in
+(`hexjax.sim.internals.forward_mode`) are checked here too, on the same standing state; its gradient in
 tests/test_forward_mode.py."""
 
 import dataclasses
@@ -17,10 +17,10 @@ from mujoco.mjx._src import forward as mjx_forward
 from hexjax.control.gait import GaitController
 from hexjax.sim.compiled import Compiled, arrays_digest
 from hexjax.sim.config import PhysicsConfig, RolloutConfig, physics_for
-from hexjax.sim.forward_mode import _contacts, check_model, contact_parts, rows_t_times, rows_times
-from hexjax.sim.implicit import implicit_solve, implicit_solver
+from hexjax.sim.internals.forward_mode import _contacts, check_model, contact_parts, rows_t_times, rows_times
+from hexjax.sim.internals.implicit import implicit_solve, implicit_solver
 from hexjax.sim.model import mjx, sim_model
-from hexjax.sim.mjx_rules import reversible_solver
+from hexjax.sim.internals.rules import reversible_solver
 from hexjax.sim.rollout import rollout_function
 from hexjax.world.presets import luneckas2020
 
@@ -124,13 +124,13 @@ class TestStanding:
             assert np.linalg.norm(b - a) <= 1e-3 * np.linalg.norm(a), (name, np.linalg.norm(b - a), np.linalg.norm(a))
 
     def test_integrator_rule_keeps_mjx_values_and_derivative(self, standing):
-        """`hexjax.sim.mjx_rules.integrator_rule`, under which every rollout that reverse or forward mode goes through is
+        """`hexjax.sim.internals.rules.integrator_rule`, under which every rollout that reverse or forward mode goes through is
         traced: MJX's implicitfast integration bit for bit on the standing robot, and its Jacobian (reverse and forward
         mode) in the mass matrix, the constraint force and the velocity equal to the one through JAX's Cholesky
         rule; `spd_solve` likewise on random SPD matrices; MJX's integrator back in place after the context."""
         from mujoco.mjx._src import forward as mjx_forward
 
-        from hexjax.sim.mjx_rules import integrator_rule, spd_solve
+        from hexjax.sim.internals.rules import integrator_rule, spd_solve
 
         m, d = standing
         mjx_implicit = mjx_forward.implicit
@@ -281,7 +281,7 @@ def test_backward_keeps_only_what_it_reads(standing):
     """The implicit backward stores, per physics step, only the arrays whose values it reads (mass matrix and
     constraint rows), not the whole mjx.Data: if JAX's dead-code pass moved and the fallback kept everything,
     the gradient would stay right but cost memory and time on every step."""
-    from hexjax.sim import implicit
+    from hexjax.sim.internals import implicit
 
     m, d = standing
     leaves, treedef = jax.tree_util.tree_flatten_with_path((m, d))
@@ -321,12 +321,12 @@ def test_unrolled_physics_steps_give_the_same_state(standing):
 
 
 def test_rotation_rule_keeps_mjx_values_and_derivative():
-    """`hexjax.sim.mjx_rules.rotation_rule`, under which every rollout that reverse mode goes through is traced: MJX's
+    """`hexjax.sim.internals.rules.rotation_rule`, under which every rollout that reverse mode goes through is traced: MJX's
     rotation matrices bit for bit, their Jacobian (reverse and forward mode) equal to MJX's own, and MJX's function
     back in place after the context, also when the body raises."""
     from mujoco.mjx._src import math as mjx_math
 
-    from hexjax.sim.mjx_rules import rotation_rule
+    from hexjax.sim.internals.rules import rotation_rule
 
     mjx_q2m = mjx_math.quat_to_mat
     q = jax.random.normal(jax.random.PRNGKey(3), (64, 4))
@@ -350,9 +350,9 @@ def test_unrolled_gradient_through_the_elliptic_cone_is_finite_and_matches_diffe
     slots without friction force) stepped 5 times with the unrolled solver. MJX's elliptic line search takes the
     square root of each contact's tangential force squared, 0 for a contact without friction force; with
     jnp.sqrt's infinite derivative there the whole gradient was NaN. `reversible_solver` gives that root a
-    finite derivative (`hexjax.sim.mjx_rules._sqrt`, whose values are jnp.sqrt's bit for bit): the derivative of the
+    finite derivative (`hexjax.sim.internals.rules._sqrt`, whose values are jnp.sqrt's bit for bit): the derivative of the
     torso's x in a sweep of the servo targets is finite and matches central differences."""
-    from hexjax.sim.mjx_rules import _sqrt
+    from hexjax.sim.internals.rules import _sqrt
     x = jnp.array([0.0, 4.0, 2.25])
     np.testing.assert_array_equal(np.asarray(_sqrt(x)), np.sqrt(np.asarray(x)))
     np.testing.assert_allclose(np.asarray(jax.vmap(jax.grad(_sqrt))(x)), [0.0, 0.25, 1 / 3], rtol=1e-6)

@@ -54,7 +54,7 @@ def _simulate(xml: str, engine: str, seconds: float, ctrl=None, samples=()):
         return np.array(out)
     from mujoco import mjx
     if engine == "warp":
-        from hexjax.sim.backends import warp_cpu
+        from hexjax.sim.internals import warp_cpu
         warp_cpu.enable()
         mx, d = mjx.put_model(m, impl="warp"), mjx.make_data(m, impl="warp")
     else:
@@ -169,7 +169,7 @@ def test_standing_hexapod_feet_carry_its_weight(preset, engine):
         feet = obs_from_sensordata(SensorConfig(), d.qpos, d.qvel, d.sensordata, 0.0).foot_force
     else:
         if engine == "warp":
-            from hexjax.sim.backends import warp_cpu
+            from hexjax.sim.internals import warp_cpu
             warp_cpu.enable()
             mx, d = mjx.put_model(m, impl="warp"), mjx.make_data(m, impl="warp")
         else:

@@ -12,7 +12,8 @@ from hexjax.control.gait import GaitController
 from hexjax.sim.metrics import goal_errors
 from hexjax.sim.compiled import Compiled
 from hexjax.sim.config import PhysicsConfig, RolloutConfig, SensorConfig
-from hexjax.sim.model import SimModel, contact_geoms, mjx
+from hexjax.sim.internals.contacts import contact_geoms
+from hexjax.sim.model import SimModel, mjx
 from hexjax.sim.rollout import _compiled, make_mesh, rollout
 from hexjax.sim.step import control_steps
 from hexjax.world.presets import get_terrain, luneckas2020

@@ -102,7 +102,7 @@ def test_cpg_gradient_matches_central_differences():
     for group, (cos, a, b) in res.items():
         print(group, f"cosine {cos:.3f} |autodiff| {np.linalg.norm(a):.3g} |FD| {np.linalg.norm(b):.3g}")
         assert cos >= 0.9, f"{group}: cosine {cos:.3f}, autodiff {a}, central differences {b}"
-    # the implicit backward through the constraint solve (hexjax.sim.implicit): with 4 iterations the solver
+    # the implicit backward through the constraint solve (hexjax.sim.internals.implicit): with 4 iterations the solver
     # has converged, so it must give the unrolled gradient (cosine >= 0.99) and match the same differences
     rc_i = dataclasses.replace(rc, solver_grad="implicit")
     model_i, fn_i = rollout_function(robot, ctrl, 0.4, physics=phys, config=rc_i)

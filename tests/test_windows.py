@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from hexjax.sim import implicit
+from hexjax.sim.internals import implicit
 from hexjax.sim.compiled import Compiled, arrays_digest
 from hexjax.sim.config import RolloutConfig, physics_for
 from hexjax.sim.model import sim_model
@@ -84,7 +84,7 @@ def _whiles(jaxpr) -> int:
 
 
 def test_a_kept_solution_replaces_the_solve():
-    """Through `hexjax.sim.implicit.solutions`, a control step's physics keeps each substep's constraint
+    """Through `hexjax.sim.internals.implicit.solutions`, a control step's physics keeps each substep's constraint
     solution, and given them back it runs no solver (the windows' backward passes take the forward's solutions,
     so they do not solve a second time) and reaches the same state, to float32 rounding: the two programs are
     compiled apart, and XLA need not round their arithmetic after the solve alike. They came out bit-identical

@@ -9,7 +9,7 @@ For one tuning config (configs/tune/*.yaml) and each batch size, times in one pr
   constraint solve (`RolloutConfig.solver_grad`: 'unrolled' Newton iterations or 'implicit' differentiation),
   and with each way to run its backward pass (`TuneConfig.backward`: 'sequential' reverse mode through the
   rollout's scan, 'parallel' the windows side by side, `hexjax.sim.windows`; rows `grad-<solver>-parallel`;
-  'forward' no backward pass, forward mode, `hexjax.sim.forward_mode`: rows `grad-implicit-forward`, taken
+  'forward' no backward pass, forward mode, `hexjax.sim.internals.forward_mode`: rows `grad-implicit-forward`, taken
   without the config's grad_clip, which bounds reverse mode's cotangents only: each row records its bound),
 and reports env-steps/s, the gradient's rate as a share of the forward's, and both compile times.
 Both programs are kept on disk (`hexjax.sim.compiled`), the gradient under the tuner's own key, so a second run,

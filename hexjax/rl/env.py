@@ -36,8 +36,6 @@ from flax import struct
 with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
     from brax.envs.base import Env, State  # noqa: E402 (brax prints warp notices on import)
 
-from mujoco.mjx._src import math as mjx_math  # noqa: E402 (after hexjax.sim.model, which silences MJX's import)
-
 from hexjax.control.gait import GaitController, GaitState
 from hexjax.sim.config import PhysicsConfig, RolloutConfig, SensorConfig, physics_for
 from hexjax.sim.model import mjx, read_obs, sim_model
@@ -61,8 +59,11 @@ class HexState:
 
 
 def _rotate_to_body(quat, v):
-    """A world-frame vector v in the frame of the torso with orientation quat (w, x, y, z)."""
-    return mjx_math.rotate(v, mjx_math.quat_inv(quat))
+    """A world-frame vector v (3,) in the frame of the torso with unit orientation quat (w, x, y, z): v rotated
+    by the conjugate quaternion (w, -u), r = 2 (u.v) u + (w^2 - u.u) v - 2 w (u x v)."""
+    w, u = quat[0], -quat[1:]
+    r = 2 * (jnp.dot(u, v) * u) + (w * w - jnp.dot(u, u)) * v
+    return r + 2 * w * jnp.cross(u, v)
 
 
 class HexapodGoalEnv(Env):

@@ -111,14 +111,14 @@ class RolloutConfig:
     #   'none'      MJX's lax.while_loop, which JAX cannot reverse: gradients need physics.iterations == 1
     #               (one unconverged Newton step makes the rollout non-smooth in the params: central
     #               differences flip sign with the step size; tests/test_tune.py)
-    #   'unrolled'  the Newton iterations traced as a fixed-length scan (`hexjax.sim.mjx_rules.reversible_solver`)
+    #   'unrolled'  the Newton iterations traced as a fixed-length scan (`hexjax.sim.internals.rules.reversible_solver`)
     #               and differentiated step by step: the reference
-    #   'implicit'  the implicit function theorem at the solution (`hexjax.sim.implicit`): one linear solve
+    #   'implicit'  the implicit function theorem at the solution (`hexjax.sim.internals.implicit`): one linear solve
     #               with the Newton Hessian per physics step in the backward pass; exact where the solver
     #               has converged
     solver_grad: str = "none"
     # How the gradient is carried: 'reverse' (jax.grad, the default) or 'forward' (jax.jacfwd, one tangent per
-    # tuned number beside the primal; `hexjax.sim.forward_mode` gives MJX's solve its forward-mode rule). Forward
+    # tuned number beside the primal; `hexjax.sim.internals.forward_mode` gives MJX's solve its forward-mode rule). Forward
     # mode needs solver_grad='implicit' and has no remat (no backward pass) and no grad_clip (it bounds a
     # cotangent); it pays where the tuned numbers are few (docs/tuning.md, "How the gradient goes through a walk").
     grad_mode: str = "reverse"

@@ -19,7 +19,8 @@ from flax import struct
 
 from hexjax.sim.config import PhysicsConfig, SensorConfig
 from hexjax.sim.mjcf import PARKED_Z, SENSOR_MATCHES, build_mjcf, sensor_layout
-from hexjax.sim.mjx_rules import mjx  # imported there without MJX's notice about the optional Warp backend
+from hexjax.sim.internals.contacts import contact_forces, contact_geoms, warn_overflow_but_iterations
+from hexjax.sim.internals.rules import mjx  # imported there without MJX's notice about the optional Warp backend
 from hexjax.world.robot import LEG_NAMES, N_LEGS, RobotSpec, neutral_feet_body
 from hexjax.world.terrain import Terrain
 
@@ -70,14 +71,10 @@ class SimModel:
             from mujoco.mjx import warp as mjx_warp
             if not mjx_warp.WARP_INSTALLED:
                 raise RuntimeError("impl='warp' needs the warp-lang package: pip install 'hexjax[warp]'")
-            from hexjax.sim.backends import warp_cpu
-            warp_cpu.enable()  # on a CPU, Warp's calls are recorded once and replayed (backends/warp_cpu.py)
+            from hexjax.sim.internals import warp_cpu
+            warp_cpu.enable()  # on a CPU, Warp's calls are recorded once and replayed (internals/warp_cpu.py)
             self.mjx_model = mjx.put_model(self.mj_model, impl="warp")
-            # hexjax runs a fixed, small number of Newton iterations on purpose (PhysicsConfig): keep Warp's
-            # overflow messages for contacts and rows, drop the one for the iteration limit
-            from mujoco.mjx.third_party.mujoco_warp._src.types import OverflowType
-            warn = int(self.mjx_model.opt._impl.warn_overflow) & ~int(OverflowType.ITERATIONS)
-            self.mjx_model = self.mjx_model.tree_replace({"opt._impl.warn_overflow": warn})
+            self.mjx_model = warn_overflow_but_iterations(self.mjx_model)
         else:
             # on this process's own first device: MJX's default, jax.devices()[0], belongs to process 0 when several
             # processes share a run (jax.distributed), and arrays on it cannot be used here
@@ -152,14 +149,6 @@ class SimModel:
         qpos = qpos.at[0].set(x).at[1].set(y).at[3:7].set(quat)
         d = self.make_data() if template is None else template
         return d.replace(qpos=qpos, ctrl=jnp.asarray(self.ctrl0))
-
-
-def contact_geoms(mx, d) -> np.ndarray:
-    """(ncon, 2) geom ids of MJX's contact slots, in the order mjx.forward fills them."""
-    from mujoco.mjx._src import collision_driver as cd
-    groups = cd._contact_groups(mx, d)
-    return np.concatenate([np.repeat(np.asarray(c.geom), cd._COLLISION_FUNC[k.types].ncon, axis=0)
-                           for k, c in groups.items()])
 
 
 @functools.lru_cache(maxsize=16)
@@ -257,7 +246,7 @@ def batch_model(sm: SimModel, terrain: Terrain):
 def read_obs(sm: SimModel, sensors: SensorConfig, m, d) -> Obs:
     """Sensor readings of one env (see `Obs`). Contact forces come from the constraint solver's
     efc_force (pyramidal cone decoded as in MuJoCo's mj_contactForce)."""
-    force, idx = mjx._src.support.contact_force_dim(m, d, 3)
+    force, idx = contact_forces(m, d)
     frames = d._impl.contact.frame[idx]  # (n, 3, 3): rows normal, tangent1, tangent2
     world = jnp.einsum("ni,nij->nj", force[:, :3], frames) * jnp.asarray(sm.contact_sign[idx])[:, None]
     # now the force on the robot geom from the terrain, whichever side of the pair the robot geom is on

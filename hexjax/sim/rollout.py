@@ -4,7 +4,6 @@ MuJoCo Warp or MuJoCo C (`backend=`)."""
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import functools
 import math
@@ -23,10 +22,8 @@ from hexjax.sim import perturb
 from hexjax.sim.backends.mujoco_c import rollout_c
 from hexjax.sim.compiled import Compiled
 from hexjax.sim.config import PhysicsConfig, RolloutConfig, SensorConfig
-from hexjax.sim.forward_mode import check_model, forward_solver
-from hexjax.sim.implicit import REMAT_POLICY, implicit_solver
+from hexjax.sim.internals import REMAT_POLICY, check_model, solver_context
 from hexjax.sim.model import sim_model
-from hexjax.sim.mjx_rules import integrator_rule, reversible_solver, rotation_rule
 from hexjax.sim import step as sim_step  # summarise looked up on the module: tests/test_step.py watches it
 from hexjax.sim.step import control_steps, make_control_step, make_env_start, settle_steps, total_physics_steps
 from hexjax.world.robot import RobotSpec
@@ -140,25 +137,6 @@ def _shard_map_without_empty_arrays(f, mesh: Mesh, specs, out_specs, args):
         return jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(out_shape), out)
     return jax.shard_map(g, mesh=mesh, in_specs=tuple(leaf_specs[i] for i in full), out_specs=out_specs,
                          check_vma=False)(*(leaves[i] for i in full))
-
-
-@contextlib.contextmanager
-def solver_context(cfg: RolloutConfig, physics: PhysicsConfig):
-    """The context under which MJX's constraint solve is traced as `cfg.solver_grad` says: its Newton iterations
-    as a scan ('unrolled'), implicit differentiation ('implicit'), or MJX's own while loop ('none'). The first
-    two, which reverse mode goes through, also trace MJX's rotation matrices and its implicit integrator's linear
-    solve with cheaper derivatives (`hexjax.sim.mjx_rules.rotation_rule`, `integrator_rule`; same values);
-    forward-only rollouts ('none') are traced as MJX writes them. With `cfg.grad_mode='forward'` the solve takes
-    forward mode's rule instead (`hexjax.sim.forward_mode.forward_solver`)."""
-    if cfg.solver_grad == "none":
-        yield
-        return
-    if cfg.grad_mode == "forward":  # validated: implicit
-        solve = forward_solver()
-    else:
-        solve = reversible_solver(physics.iterations) if cfg.solver_grad == "unrolled" else implicit_solver()
-    with rotation_rule(), integrator_rule(), solve:
-        yield
 
 
 def check_static(robot: RobotSpec, controller, duration, physics: PhysicsConfig, config: RolloutConfig) -> int:

@@ -25,7 +25,8 @@ import jax.numpy as jnp
 from flax import struct
 
 from hexjax.perceive import raycast
-from hexjax.sim import implicit, perturb
+from hexjax.sim import perturb
+from hexjax.sim.internals import implicit
 from hexjax.sim.config import PhysicsConfig, RolloutConfig, SensorConfig
 from hexjax.sim.grad import clip_cotangent, cut_gradient
 from hexjax.sim.model import SimModel, assign_slots, env_model, mjx, obs_from_sensordata, place_static_geoms, read_obs
@@ -252,7 +253,7 @@ def physics(m, d, n_sub: int, stop: bool = False, unroll: bool = False):
     if channel is None:
         return jax.lax.scan(sub, d, None, length=n_sub, unroll=unroll)
 
-    # inside `hexjax.sim.implicit.solutions` (the windowed backward, `hexjax.sim.windows`): each substep's
+    # inside `hexjax.sim.internals.implicit.solutions` (the windowed backward, `hexjax.sim.windows`): each substep's
     # constraint solution is kept, or taken from those kept before
     def sub_channel(dd, given):
         with implicit.solution_slot(given) as slot:

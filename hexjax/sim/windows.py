@@ -21,8 +21,8 @@ The value is the rollout's and the gradient that of reverse mode through the rol
 config, to float32 rounding (`tests/test_windows.py`), with a backward pass W steps long instead of T. With the
 implicit solve the forward also keeps each physics step's constraint solution (qacc, the joint and the row
 forces: a few hundred floats a physics step and env), and the backward's steps take it in place of solving
-again (`hexjax.sim.implicit.solutions`; the checkpointed scan does the same through
-`hexjax.sim.implicit.REMAT_POLICY`), so a backward control step costs a forward one without its solver, plus its
+again (`hexjax.sim.internals.implicit.solutions`; the checkpointed scan does the same through
+`hexjax.sim.internals.implicit.REMAT_POLICY`), so a backward control step costs a forward one without its solver, plus its
 transpose. What the form saves is time in a row, not arithmetic: it pays where a device has room for B x K envs
 at once (2.7x on an H100 at B = 256; docs/tuning.md).
 """
@@ -36,10 +36,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from hexjax.sim import implicit
+from hexjax.sim.internals import implicit, solver_context
 from hexjax.sim.config import PhysicsConfig, RolloutConfig, SensorConfig
 from hexjax.sim.model import sim_model
-from hexjax.sim.rollout import check_static, solver_context
+from hexjax.sim.rollout import check_static
 from hexjax.sim.step import GRAD_FIELDS, make_control_step, make_env_start, settle_steps, summarise
 
 # accumulators that are running extremes, not sums: a window's end passes their cotangent on only if the
@@ -99,7 +99,7 @@ def windowed_value_and_grad(robot, controller, duration: float, loss, *, physics
     duration: seconds of control after settling; config: the gradient rollout's (`grad_window`, `grad_clip`,
     `solver_grad`; `remat` has no effect here, nothing is stored but each step's input state). With
     `solver_grad='implicit'` and `keep_solutions` the forward also keeps each physics step's constraint solution,
-    and the backward's steps take it instead of solving again (`hexjax.sim.implicit.solutions`)."""
+    and the backward's steps take it instead of solving again (`hexjax.sim.internals.implicit.solutions`)."""
     n_ctrl = check_static(robot, controller, duration, physics, config)
     if config.record or config.progress_every:
         raise ValueError("windowed_value_and_grad: rollout.record and rollout.progress_every are forward-only "

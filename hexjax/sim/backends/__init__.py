@@ -1,2 +1,2 @@
-"""Physics engines besides MJX's JAX implementation (MJX-Warp runs through `hexjax.sim.model` itself; `warp_cpu`
-replays its recorded calls on a CPU)."""
+"""Physics engines besides MJX: MuJoCo C (`mujoco_c`). MJX-Warp runs through `hexjax.sim.model` itself, with its
+CPU replay in `hexjax.sim.internals.warp_cpu`."""

@@ -4,7 +4,7 @@ gradients taken with `jax.jacfwd` (one tangent per tuned number, carried along t
 
 With few tuned numbers (5 for the tactile preset) this is the cheaper program: one loop, with no second copy of the
 control step (`remat`) and no reverse loop (docs/tuning.md, "How the gradient goes through a walk"). It is the forward-mode twin of
-`hexjax.sim.implicit`: MJX's solve runs as MJX runs it, cut from the derivative, and a custom JVP gives its
+`hexjax.sim.internals.implicit`: MJX's solve runs as MJX runs it, cut from the derivative, and a custom JVP gives its
 solution a* the tangent
 
     d a* = -H^{-1} (dg/dtheta) d theta,    g(a, theta) = M a - qfrc_smooth - J^T f(J a - aref),
@@ -26,7 +26,7 @@ an H100 (docs/tuning.md):
 
 What it handles (`check_model`, before tracing): MJX's Newton solver, the pyramidal cone, condim-3 contacts, and
 joint-limit rows on hinge and slide joints (constant rows). Equality, friction-loss and tendon rows are refused.
-The derivative is that of the converged solution, as for `hexjax.sim.implicit`.
+The derivative is that of the converged solution, as for `hexjax.sim.internals.implicit`.
 """
 
 from __future__ import annotations
@@ -40,8 +40,8 @@ from mujoco.mjx._src import collision_driver, constraint, solver, support
 from mujoco.mjx._src import math as mjx_math
 from mujoco.mjx._src.types import ConeType, ConstraintType, DisableBit, JointType, SolverType
 
-from hexjax.sim import implicit
-from hexjax.sim.mjx_rules import swapped
+from hexjax.sim.internals import implicit
+from hexjax.sim.internals.rules import swapped
 
 _MJX_PYRAMIDAL = constraint._efc_contact_pyramidal  # MJX's own, whatever is patched in later
 

@@ -38,7 +38,7 @@ from jax.ad_checkpoint import checkpoint_name
 from mujoco.mjx._src import solver, support
 from mujoco.mjx._src.types import ConeType
 
-from hexjax.sim.mjx_rules import swapped
+from hexjax.sim.internals.rules import swapped
 
 _MJX_SOLVE = solver.solve  # MJX's own solver, whatever is patched in later
 SOLUTION = "hexjax_constraint_solution"
@@ -228,6 +228,6 @@ def implicit_solve(m, d):
 
 def implicit_solver():
     """While open, MJX's forward dynamics calls `implicit_solve` in place of its constraint solver. Like
-    `hexjax.sim.mjx_rules.reversible_solver`, only tracing needs the context. Relies on MJX's `forward` module
+    `hexjax.sim.internals.rules.reversible_solver`, only tracing needs the context. Relies on MJX's `forward` module
     calling `solver.solve` through the module at each call (mujoco-mjx 3.17.0)."""
     return swapped(solver, "solve", implicit_solve)

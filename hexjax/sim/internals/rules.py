@@ -86,7 +86,7 @@ def reversible_solver(iterations: int):
 def swapped(module, name: str, value):
     """While open, `module.name` is `value`; the previous one is put back on exit, also after an exception. This
     is how hexjax traces MJX with one of its internals replaced (`reversible_solver`, `rotation_rule`,
-    `hexjax.sim.implicit.implicit_solver`): MJX looks these names up in their module at each call."""
+    `hexjax.sim.internals.implicit.implicit_solver`): MJX looks these names up in their module at each call."""
     prev = getattr(module, name)
     setattr(module, name, value)
     try:
