@@ -4,18 +4,19 @@ import os
 # XLA:CPU's older LLVM IR fusion emitters (TEST_XLA_FLAGS' second flag) compile the suite's MJX programs in a third
 # less time than its default MLIR ones: 1,346 s of compile against 1,968 s, cold runs on one day. Values agree to
 # float32 rounding. hexjax itself keeps XLA's default: there the CPU gradient of `hexjax bench --grad` ran 25 %
-# slower with the older emitters (docs/modelling.md, docs/benchmarks.md 2026-11-26). They also write a fused
+# slower with the older emitters (docs/modelling.md). They also write a fused
 # dynamic-update-slice's whole output, not its slice: a scan of n steps that stacks its outputs (`lax.scan`'s ys)
 # costs n^2 (120 s of the Van der Pol network 15.8 s against 0.03 s), and MJX's elliptic-cone solve runs twice as
 # long (the perturbed walks: 19.8 s against 9.9 s). Tests that stack thousands of steps split them into chunks
 # (tests/test_vdp.py `_run`).
 #
+# The two checks that walk longest on the elliptic cone, the terrain families' and the fidelity matrix's, run
+# their command in a process of its own with XLA's default flags, as a user runs it (tests/test_terrain.py,
+# tests/test_fidelity.py): there the solve runs 3.4x faster and the compile of one program costs little more.
+#
 # YNNPACK's reductions: the suite runs with hexjax's own setting, the one users get (`import hexjax` adds
-# `--xla_cpu_experimental_ynn_fusion_type=-reduce`; hexjax/__init__.py). Until 2026-11-27 (sixth session) it passed
-# `+reduce`, XLA's default, because one chaotic outcome had been set with it (the stones family's drop in
-# `test_terrain::test_families_walkable_at_zero_and_harder_with_difficulty`, whose docstring now gives the
-# rates measured at 128 envs). With hexjax's setting the warm suite took 5 min 12 s against 6 min 1 s
-# (docs/testing.md).
+# `--xla_cpu_experimental_ynn_fusion_type=-reduce`; hexjax/__init__.py); the warm suite took 5 min 12 s with
+# it against 6 min 1 s with XLA's `+reduce` (docs/testing.md).
 TEST_XLA_FLAGS = ("--xla_force_host_platform_device_count={devices} "
                   "--xla_backend_extra_options=xla_cpu_disable_new_fusion_emitters")
 os.environ.setdefault("XLA_FLAGS", TEST_XLA_FLAGS.format(devices=2))

@@ -67,13 +67,15 @@ def run(o, entry) -> Dict:
         shape = (len(fams), len(levels), o.batch)
         ok = np.asarray(e.success).reshape(shape)
         fell = np.asarray(s.fell).reshape(shape)
-        dx, dy, da = (np.asarray(v).reshape(shape) for v in (e.dx, e.dy, e.dalpha))
+        dx, dy, da, adv = (np.asarray(v).reshape(shape) for v in (e.dx, e.dy, e.dalpha, e.advance))
+        nan = np.asarray(s.nan).reshape(shape)
         for fi, f in enumerate(fams):
             for li, d in enumerate(levels):
                 k = int(ok[fi, li].sum())
                 out["rows"].append(dict(controller=cname, family=f, difficulty=d, success_pct=100 * k / o.batch,
                                         success_ci95=list(wilson(k, o.batch)),
                                         fall_pct=100 * float(fell[fi, li].mean()),
+                                        advance_cm=100 * float(adv[fi, li].mean()), nan_envs=int(nan[fi, li].sum()),
                                         goal_error_cm=error_stats(dx[fi, li], dy[fi, li], da[fi, li],
                                                                   o.distance)["goal_error_cm"], n=o.batch))
         run_s = st.wall_s - st.compile_s
