@@ -1,5 +1,5 @@
-"""Compare two result JSONs of the same command, before and after a change (how issue 18 checked that the
-refactor kept every number).
+"""Compare two result JSONs of the same command, before and after a change (a refactor keeps
+every number; `scripts/same_numbers.py` runs it on five commands).
 
     python scripts/compare_json.py before.json after.json [rows]
 

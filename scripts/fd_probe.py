@@ -1,4 +1,4 @@
-"""Issue 5 diagnostic: does the autodiff gradient of a short smooth rollout agree with central differences?
+"""Diagnostic: does the autodiff gradient of a short smooth rollout agree with central differences?
 
 One robot, one controller, one solver setting per call; prints the cosine and the norms per parameter
 (or group) at several finite-difference steps. The objective is `hexjax.tune.gradcheck.travel_objective`, as in tests/test_tune.py: the mean

@@ -10,7 +10,7 @@ antithetic perturbations (forward), the whole walk's directional derivatives tha
 
 Printed and written, per parameter and for B in {1, 2, 4, 8, 16, 32} (2,000 random batches each):
 - rel. std: ||sd of the B-env estimate|| / ||its mean||;
-- sign agreement with the estimator's own N-env estimate (what issue 5 reported);
+- sign agreement with the estimator's own N-env estimate;
 - with --pairs: sign agreement with a reference computed on other envs: the envs are split in two halves,
   the reference is the zeroth-order fit to all of the first half's pairs, the B-env batches are drawn from
   the second half. A biased estimator (the windowed gradient of a delayed effect) agrees with

@@ -1,4 +1,4 @@
-"""Where does a gradient of the tuning objective spend its device time? (issue 19)
+"""Where does a gradient of the tuning objective spend its device time?
 
 Profiles one call of the smooth forward objective and one of its `jax.value_and_grad` (the programs
 `hexjax bench --grad` times) with the JAX profiler, and attributes every kernel's time to

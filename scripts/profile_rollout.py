@@ -1,4 +1,4 @@
-"""Where does a control step of the batched rollout spend its time? (issue 7, throughput)
+"""Where does a control step of the batched rollout spend its time?
 
 Three views, each at one batch size on obstacle terrain (where a controller runs, the full tactile one):
 

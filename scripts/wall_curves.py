@@ -1,4 +1,4 @@
-"""Issue 19: held-out objective against wall seconds for several `hexjax tune` runs of one config (gradient,
+"""Held-out objective against wall seconds for several `hexjax tune` runs of one config (gradient,
 hybrid, CMA-ES), and when each first reaches the final held-out objective of the one named by --target.
 
     python scripts/wall_curves.py out/a/log.json out/b/log.json ... [--labels a,b,...] [--target 2]
@@ -27,7 +27,7 @@ for i, path in enumerate(a.logs):
     with open(path) as f:
         r = json.load(f)
     label = a.labels.split(",")[i] if a.labels else r["method"]
-    # the method's own seconds (evaluations left out; logs older than issue 19 have only wall_s)
+    # the method's own seconds (evaluations left out; older logs have only wall_s)
     secs = lambda e: e["train_s"] if "train_s" in e else e["wall_s"]
     pts = [(secs(e), e["held_out"]["objective"], e["step"]) for e in r["log"] if "held_out" in e]
     runs.append({"label": label, "log": path, "curve": pts, "final": r["final"]["held_out"]["objective"],

@@ -22,6 +22,7 @@ RUN_LOG = [
     (re.compile(r"^#+ .*\bsession\b", re.M | re.I), "a section heading naming a session"),
     (re.compile(ORDINAL + r"[ -]sessions?\b", re.I), "a counted session"),
     (re.compile(r"\b(this|last|previous|next) session\b", re.I), "session wording"),
+    (re.compile(r"\b(since |in |an? |the )?issue \d+\b|\bthe issue's\b", re.I), "a reference to a work item"),
 ]
 
 
@@ -49,6 +50,8 @@ def test_the_checker_finds_what_it_is_for():
     assert not HASH.search("seed 1234567, 1e-08, the float32 sum, docs/results/bench_gpu_h200.json")
     assert RUN_LOG[0][0].search("## 2026-11-30 (thirty-ninth session), issue 18")
     assert RUN_LOG[2][0].search("in the twenty-fourth session") and RUN_LOG[3][0].search("measured this session")
+    assert RUN_LOG[4][0].search("# Planners (issue 6)") and RUN_LOG[4][0].search("the issue's table")
+    assert not RUN_LOG[4][0].search("a known issue with Warp 1.18's CPU graphs")
     assert not any(rx.search("## Compile time and the compilation cache\nThe first run compiles, the second loads.")
                    for rx, _ in RUN_LOG)
 

@@ -1,4 +1,4 @@
-"""Autodiff against central finite differences, per parameter group (issue 5's gradient check)."""
+"""Autodiff against central finite differences, per parameter group."""
 
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
 """Tunable parameter spaces: which controller numbers an optimiser may move, within which bounds, and the
-reparametrisation that keeps every iterate physical (issue 5).
+reparametrisation that keeps every iterate physical.
 
 An optimiser works on unconstrained arrays u; a bounded field is p = lo + (hi - lo) sigmoid(u) (two-sided)
 or p = lo + softplus(u) (one-sided, hi = None), so Adam's steps can never produce a negative height or a
