@@ -118,8 +118,8 @@ class RolloutConfig:
     #               has converged
     solver_grad: str = "none"
     # How the gradient is carried: 'reverse' (jax.grad, the default) or 'forward' (jax.jacfwd, one tangent per
-    # tuned number beside the primal; `hexjax.sim.internals.forward_mode` gives MJX's solve its forward-mode rule). Forward
-    # mode needs solver_grad='implicit' and has no remat (no backward pass) and no grad_clip (it bounds a
+    # tuned number beside the primal; `hexjax.sim.internals.forward_mode` gives MJX's solve its forward-mode
+    # rule). Forward mode needs solver_grad='implicit' and has no remat (no backward pass) and no grad_clip (it bounds a
     # cotangent); it pays where the tuned numbers are few (docs/tuning.md, "How the gradient goes through a walk").
     grad_mode: str = "reverse"
     # Every this many control steps the compiled rollout reports its step index to the host (see

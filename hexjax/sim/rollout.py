@@ -19,12 +19,12 @@ from jax.sharding import PartitionSpec as P
 
 from hexjax.control.base import Controller
 from hexjax.sim import perturb
+from hexjax.sim import step as sim_step  # summarise on the module: tests/test_step.py watches it
 from hexjax.sim.backends.mujoco_c import rollout_c
 from hexjax.sim.compiled import Compiled
 from hexjax.sim.config import PhysicsConfig, RolloutConfig, SensorConfig
 from hexjax.sim.internals import REMAT_POLICY, check_model, solver_context
 from hexjax.sim.model import sim_model
-from hexjax.sim import step as sim_step  # summarise looked up on the module: tests/test_step.py watches it
 from hexjax.sim.step import control_steps, make_control_step, make_env_start, settle_steps, total_physics_steps
 from hexjax.world.robot import RobotSpec
 from hexjax.world.terrain import Terrain

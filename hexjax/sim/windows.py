@@ -22,8 +22,8 @@ config, to float32 rounding (`tests/test_windows.py`), with a backward pass W st
 implicit solve the forward also keeps each physics step's constraint solution (qacc, the joint and the row
 forces: a few hundred floats a physics step and env), and the backward's steps take it in place of solving
 again (`hexjax.sim.internals.implicit.solutions`; the checkpointed scan does the same through
-`hexjax.sim.internals.implicit.REMAT_POLICY`), so a backward control step costs a forward one without its solver, plus its
-transpose. What the form saves is time in a row, not arithmetic: it pays where a device has room for B x K envs
+`hexjax.sim.internals.implicit.REMAT_POLICY`), so a backward control step costs a forward one without its solver,
+plus its transpose. What the form saves is time in a row, not arithmetic: it pays where a device has room for B x K envs
 at once (2.7x on an H100 at B = 256; docs/tuning.md).
 """
 

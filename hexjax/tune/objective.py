@@ -222,8 +222,8 @@ class Problem:
         """The same f(u, terrain, keys) as `value_and_grad`, its gradient taken in forward mode: `jax.jacfwd` of
         sum J over the batch, one tangent per unconstrained number side by side, through the gradient rollout
         without remat and with forward mode's rule for MJX's solve (`RolloutConfig.grad_mode='forward'`,
-        `hexjax.sim.internals.forward_mode`). The windows cut the tangents at their starts, so it is the windowed gradient
-        of reverse mode without a bound (the config's grad_clip must be null)."""
+        `hexjax.sim.internals.forward_mode`). The windows cut the tangents at their starts, so it is the windowed
+        gradient of reverse mode without a bound (the config's grad_clip must be null)."""
         model, fn = self.train_rollout(grad=True, duration=duration, settle_time=settle_time)
         loss = self.loss_fn(fn, model)
 

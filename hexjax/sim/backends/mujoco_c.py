@@ -35,12 +35,12 @@ import numpy as np
 from mujoco import rollout as mj_rollout
 
 from hexjax.sim import perturb
+from hexjax.sim import step as sim_step  # the phase and summarise on the module: tests/test_step.py watches them
 from hexjax.sim.config import PhysicsConfig, RolloutConfig, SensorConfig
 from hexjax.sim.mjcf import PARKED_Z, build_mjcf, compile_mjcf, sensor_layout
 from hexjax.sim.model import actuator_forces, obs_from_sensordata
 from hexjax.sim.perturb import MIN_FRICTION
 from hexjax.sim.slip import slip
-from hexjax.sim import step as sim_step  # the shared functions looked up on the module: tests/test_step.py watches them
 from hexjax.sim.step import accumulate, init_acc, settle_steps, start_yaw, substeps
 from hexjax.world.robot import RobotSpec
 
