@@ -34,6 +34,13 @@ from hexjax.cache import TRACE_GC_THRESHOLD  # noqa: E402
 # collection of what it made (`_free_compiled_rollouts`), so nothing piles up across the run.
 gc.set_threshold(*TRACE_GC_THRESHOLD)
 
+@pytest.fixture
+def default_xla_env():
+    """The environment for a child process that runs a command as a user runs it: XLA's default flags, not the
+    suite's (`TEST_XLA_FLAGS`)."""
+    return {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+
+
 _PEAKS = []
 
 # The order and grouping of the tests, from marks on the tests themselves (nothing here names a test):

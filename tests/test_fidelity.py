@@ -2,7 +2,6 @@
 converged), and the matrix's bookkeeping."""
 
 import json
-import os
 import subprocess
 import sys
 import types
@@ -20,12 +19,11 @@ def _options(**kw):
     return types.SimpleNamespace(**o)
 
 
-def _run_in_own_process(options, preset, path):
-    """`fidelity.run(options, preset)`'s result, run in a child process with XLA's default flags."""
+def _run_in_own_process(options, preset, path, env):
+    """`fidelity.run(options, preset)`'s result, run in a child process with environment `env`."""
     code = ("import json, sys, types\nfrom hexjax.experiments import fidelity\nfrom hexjax.experiments.runner import "
             "write_json\nres = fidelity.run(types.SimpleNamespace(**json.loads(sys.argv[1])), "
             "types.SimpleNamespace(preset=json.loads(sys.argv[2])))\nwrite_json(sys.argv[3], res)\n")
-    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
     r = subprocess.run([sys.executable, "-c", code, json.dumps(options), json.dumps(preset), str(path)], env=env,
                        capture_output=True, text=True, timeout=3000)
     assert r.returncode == 0, r.stderr[-2000:]
@@ -33,7 +31,7 @@ def _run_in_own_process(options, preset, path):
 
 
 @pytest.mark.cost(300)
-def test_validated_mjx_meets_the_reference_on_a_paired_matrix(tmp_path):
+def test_validated_mjx_meets_the_reference_on_a_paired_matrix(tmp_path, default_xla_env):
     """64 envs per cell, the open-loop gait 0.25 m on flat ground and on low-small obstacles at friction 0.2 and
     0.6 (the frictions where 2 Newton iterations read 12 % against converged MuJoCo's 43 %), both engines on the
     same terrains and heading draws. The tolerance is the contract widened by each cell's own paired 95 % interval
@@ -42,7 +40,7 @@ def test_validated_mjx_meets_the_reference_on_a_paired_matrix(tmp_path):
     about +-12 points; the advance and heading ones are tighter). Run as `hexjax fidelity` runs, in a process
     with XLA's default settings (the suite's older fusion emitters slow MJX's elliptic-cone solve 3.4x)."""
     preset = {"friction_terrains": ["flat", "low-small"], "frictions": [0.2, 0.6], "controllers": {"gait": "all"}}
-    res = _run_in_own_process(vars(_options()), preset, tmp_path / "fid.json")
+    res = _run_in_own_process(vars(_options()), preset, tmp_path / "fid.json", default_xla_env)
     assert res["physics"]["name"] == "validated" and res["physics"]["backend"] == "mjx"
     assert res["against"]["name"] == "reference" and res["against"]["backend"] == "c"
     rows = {r["cell"]: r for r in res["cells"]}

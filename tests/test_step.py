@@ -82,7 +82,7 @@ def test_the_mjx_and_c_backends_run_one_controller_phase_and_one_summarise(monke
     robot = get_robot("luneckas2020")
     ctrl = make_controller("gait", robot)
     terrain = sample(get_terrain("flat"), jax.random.PRNGKey(0), 2)
-    phase_calls, summarise = [], step.summarise
+    phase_calls, step_phase, summarise = [], step.controller_phase, step.summarise
 
     def phase(*args, **kwargs):
         phase_calls.append(1)
@@ -91,7 +91,6 @@ def test_the_mjx_and_c_backends_run_one_controller_phase_and_one_summarise(monke
     def marked(acc, qpos_end, final_state, **traces):
         return summarise(dict(acc, energy=jnp.full_like(acc["energy"], -7.0)), qpos_end, final_state, **traces)
 
-    step_phase = step.controller_phase
     caches = (rollout_module._compiled, mujoco_c._controller_fns)
     monkeypatch.setattr(step, "controller_phase", phase)
     monkeypatch.setattr(step, "summarise", marked)

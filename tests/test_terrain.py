@@ -237,7 +237,7 @@ LEVELS = (0.0, 1 / 3, 2 / 3, 1.0)
 
 
 @pytest.mark.cost(300)
-def test_families_walkable_at_zero_and_harder_with_difficulty(tmp_path):
+def test_families_walkable_at_zero_and_harder_with_difficulty(tmp_path, default_xla_env):
     """The open-loop Luneckas 2020 tripod (3 cm swing) walks 0.2 m on each new family, 16 envs per family (4 at
     each of difficulties 0, 1/3, 2/3, 1), all in one rollout on the `validated` physics: `hexjax families`, run
     as a user runs it, in a process of its own with XLA's default settings (the suite's older fusion emitters
@@ -254,16 +254,14 @@ def test_families_walkable_at_zero_and_harder_with_difficulty(tmp_path):
       least 3 cm less than at 0 and at most 1 of 4 envs falls.
     The features begin at x = 0.1 m, under the front feet, so a 0.2 m walk crosses them."""
     import json
-    import os
     import subprocess
     import sys
 
     n, out = 4, tmp_path / "families.json"
-    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
     r = subprocess.run([sys.executable, "-m", "hexjax.cli", "families", "--controllers", "gait", "--batch", str(n),
                         "--levels", ",".join(repr(v) for v in LEVELS), "--families", ",".join(FAMILIES),
                         "--distance", "0.2", "--start-x", "0.1", "--json", str(out)],
-                       env=env, capture_output=True, text=True, timeout=3000)
+                       env=default_xla_env, capture_output=True, text=True, timeout=3000)
     assert r.returncode == 0, r.stderr[-2000:]
     res = json.loads(out.read_text())
     assert res["physics"]["name"] == "validated"

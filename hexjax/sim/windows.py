@@ -23,8 +23,8 @@ implicit solve the forward also keeps each physics step's constraint solution (q
 forces: a few hundred floats a physics step and env), and the backward's steps take it in place of solving
 again (`hexjax.sim.internals.implicit.solutions`; the checkpointed scan does the same through
 `hexjax.sim.internals.implicit.REMAT_POLICY`), so a backward control step costs a forward one without its solver,
-plus its transpose. What the form saves is time in a row, not arithmetic: it pays where a device has room for B x K envs
-at once (2.7x on an H100 at B = 256; docs/tuning.md).
+plus its transpose. What the form saves is time in a row, not arithmetic: it pays where a device has room for
+B x K envs at once (2.7x on an H100 at B = 256; docs/tuning.md).
 """
 
 from __future__ import annotations
