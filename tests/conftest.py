@@ -10,9 +10,10 @@ import os
 # long (the perturbed walks: 19.8 s against 9.9 s). Tests that stack thousands of steps split them into chunks
 # (tests/test_vdp.py `_run`).
 #
-# The two checks that walk longest on the elliptic cone, the terrain families' and the fidelity matrix's, run
-# their command in a process of its own with XLA's default flags, as a user runs it (tests/test_terrain.py,
-# tests/test_fidelity.py): there the solve runs 3.4x faster and the compile of one program costs little more.
+# The three checks that walk longest on the elliptic cone, the terrain families', the fidelity matrix's and
+# `evaluate` on obstacles, run their command in a process of its own with XLA's default flags, as a user runs it
+# (tests/test_terrain.py, tests/test_fidelity.py, tests/test_cli.py): there the solve runs 2-3.4x faster and the
+# compile of one program costs little more.
 #
 # YNNPACK's reductions: the suite runs with hexjax's own setting, the one users get (`import hexjax` adds
 # `--xla_cpu_experimental_ynn_fusion_type=-reduce`; hexjax/__init__.py); the warm suite took 5 min 12 s with

@@ -263,6 +263,7 @@ def test_families_walkable_at_zero_and_harder_with_difficulty(tmp_path, default_
                         "--distance", "0.2", "--start-x", "0.1", "--json", str(out)],
                        env=default_xla_env, capture_output=True, text=True, timeout=3000)
     assert r.returncode == 0, r.stderr[-2000:]
+    assert f"gait x {len(FAMILIES) * len(LEVELS) * n} envs" in r.stderr  # its progress bar over the walk
     res = json.loads(out.read_text())
     assert res["physics"]["name"] == "validated"
     assert (res["config"]["slots_per_leg"], res["config"]["torso_slots"]) == (3, 8)  # the stones' (the most)

@@ -14,6 +14,7 @@ import numpy as np
 from hexjax.control.registry import make_controller
 from hexjax.sim.metrics import error_stats, goal_errors
 from hexjax.experiments.robustness import wilson
+from hexjax.experiments.runner import step_bar
 from hexjax.sim.physics import PhysicsConfig, shared_config
 from hexjax.sim.rollout import rollout
 from hexjax.world.presets import get_robot, get_terrain
@@ -23,11 +24,12 @@ WALK_KEY = 9  # the walk's key; terrain i of the (family, difficulty) grid is sa
 
 
 def walk_families(controller: str, families: Sequence[str], levels: Sequence[float], batch: int, distance: float,
-                  start_x: float, physics: PhysicsConfig, robot: str = "luneckas2020"):
+                  start_x: float, physics: PhysicsConfig, robot: str = "luneckas2020", progress: bool = True):
     """`batch` envs of every (family, difficulty), in that order, walking `distance` m with the features from
     `start_x` on, in one rollout. The physics takes the most box slots any family needs (`shared_config`).
     The tactile method's overcome height (Luneckas 2020 Eq. 7's h_k) is set per env from its stairs' or boxes'
-    height. Returns (summary, goal errors, rollout stats, the physics run)."""
+    height. A bar counts the rollout's control steps (`progress`). Returns (summary, goal errors, rollout stats,
+    the physics run)."""
     from hexjax.control.tactile import overcome_height
     rob = get_robot(robot)
     specs = [get_terrain(f, start_x=start_x, length=distance + 0.4).at_difficulty(d) for f in families
@@ -44,8 +46,9 @@ def walk_families(controller: str, families: Sequence[str], levels: Sequence[flo
         nb = len(specs) * batch
         params = jax.tree_util.tree_map(lambda x: np.broadcast_to(np.asarray(x), (nb,) + np.shape(x)), params)
         params = params.replace(overcome_height=np.repeat(overcome_height(h), batch).astype(np.float32))
-    s, st = rollout(rob, terr, ctrl, params, duration, jax.random.PRNGKey(WALK_KEY), physics=phys, stats=True,
-                    params_batched=per_env)
+    with step_bar(f"{controller} x {len(specs) * batch} envs", ctrl.dt, duration, every=10, enabled=progress) as cfg:
+        s, st = rollout(rob, terr, ctrl, params, duration, jax.random.PRNGKey(WALK_KEY), physics=phys, stats=True,
+                        params_batched=per_env, config=cfg)
     return s, goal_errors(s, distance), st, phys
 
 

@@ -3,6 +3,8 @@ any work (output paths, preset names), run it, print its report, write its JSON 
 
 from __future__ import annotations
 
+import contextlib
+import dataclasses
 import importlib
 import json
 import os
@@ -12,7 +14,26 @@ from typing import Any, Dict, List
 
 from hexjax.experiments.registry import Entry
 from hexjax.interrupt import keep
+from hexjax.sim.config import RolloutConfig
 from hexjax.world.files import resolve
+
+
+@contextlib.contextmanager
+def step_bar(desc: str, ctrl_dt: float, duration: float, cfg: RolloutConfig = RolloutConfig(), every: int = 50,
+             enabled: bool = True):
+    """A tqdm bar over one rollout's control steps (settling included), moved from the device every `every`
+    steps; yields the `RolloutConfig` to roll out with (`cfg` with `progress_every` set, or `cfg` itself when
+    the bar is off: a program without the host callback is kept on disk, `hexjax.sim.compiled`)."""
+    from tqdm.auto import tqdm
+
+    from hexjax.sim.step import control_steps, progress_to, settle_steps
+    run_cfg = dataclasses.replace(cfg, progress_every=every) if enabled else cfg
+    total = settle_steps(cfg, ctrl_dt) + control_steps(duration, ctrl_dt)
+    bar = tqdm(total=total, desc=desc, unit="step", disable=not enabled, mininterval=1.0)
+    with progress_to(lambda i: bar.update(i - bar.n)):
+        yield run_cfg
+    bar.update(total - bar.n)
+    bar.close()
 
 
 def check_folder(flag: str, value, folder: str) -> None:

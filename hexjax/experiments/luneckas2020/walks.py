@@ -10,15 +10,14 @@ from typing import Sequence
 import jax
 import jax.numpy as jnp
 import numpy as np
-from tqdm.auto import tqdm
 
 from hexjax.control.registry import make_controller
 from hexjax.control.tactile import TactileGaitController, overcome_height
+from hexjax.experiments.runner import step_bar
 from hexjax.sim.metrics import pose_errors
 from hexjax.sim.config import RolloutConfig
 from hexjax.sim.physics import get_physics, shared_config
 from hexjax.sim.rollout import rollout
-from hexjax.sim.step import progress_to
 from hexjax.world.presets import get_robot, get_terrain
 from hexjax.world.terrain import LUNECKAS2020_CATEGORIES, pad_terrain, sample
 
@@ -108,18 +107,9 @@ def simulate_gait(gait: str, n: int, seed: int = 0, distance: float = 2.0,
         params += [ctrl.default_params(enable=0.0)] * n
     terrain = concat(terrs)
     params = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *params)
-    cfg = RolloutConfig(record=True, progress_every=50)
-    n_total = int(round(cfg.settle_time / ctrl.dt)) + int(math.ceil(dur / ctrl.dt - 1e-9))
-    bar = tqdm(total=n_total, desc=f"{gait} x {len(params.enable)} envs, {dur:.0f} s simulated", unit="step",
-               disable=not progress, mininterval=1.0)
-
-    def sink(i):
-        bar.update(i - bar.n)
-
-    with progress_to(sink):
+    with step_bar(f"{gait} x {len(params.enable)} envs, {dur:.0f} s simulated", ctrl.dt, dur,
+                  RolloutConfig(record=True), enabled=progress) as cfg:
         s, st = rollout(robot, terrain, ctrl, params, dur, jax.random.fold_in(base, 1000), params_batched=True,
                         config=cfg, stats=True, physics=shared_config(preset, specs.values()),
                         backend=preset.backend)
-    bar.update(n_total - bar.n)
-    bar.close()
     return ctrl, params, terrain, s, groups, st
