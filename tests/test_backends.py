@@ -20,12 +20,13 @@ ROBOT = get_robot("luneckas2020")
 CTRL = TactileGaitController(ROBOT)
 TERRAIN = sample(get_terrain("high-large"), jax.random.PRNGKey(0), 6)
 SECONDS = 5.0
+PHYSICS = PhysicsConfig()  # the same raw settings on every engine (a preset would run each engine's own)
 PHYSICS_STEPS = (15 + 250) * 4  # per env in SECONDS: 15 settling and 250 control steps of 4 physics steps
 
 
 @pytest.fixture(scope="module")
 def mjx_run():
-    return rollout(ROBOT, TERRAIN, CTRL, CTRL.default_params(), SECONDS, jax.random.PRNGKey(1))
+    return rollout(ROBOT, TERRAIN, CTRL, CTRL.default_params(), SECONDS, jax.random.PRNGKey(1), physics=PHYSICS)
 
 
 def _agree(ref, out):
@@ -52,7 +53,7 @@ class TestAgainstTheMjxWalk:
 
     def test_mujoco_c_backend_walks_like_mjx(self, mjx_run):
         out, st = rollout(ROBOT, TERRAIN, CTRL, CTRL.default_params(), SECONDS, jax.random.PRNGKey(1), backend="c",
-                          nthread=2, stats=True)
+                          nthread=2, stats=True, physics=PHYSICS)
         assert st.backend == "c" and st.compile_s > 0 and st.env_steps == 6 * PHYSICS_STEPS
         np.testing.assert_allclose(np.asarray(out.start_pose), np.asarray(mjx_run.start_pose), atol=5e-3)
         _agree(mjx_run, out)
@@ -61,7 +62,8 @@ class TestAgainstTheMjxWalk:
         _warp()
         from hexjax.sim.internals import warp_cpu
         recorded, replayed = warp_cpu.STATS["recorded"], warp_cpu.STATS["replayed"]
-        walk = lambda: rollout(ROBOT, TERRAIN, CTRL, CTRL.default_params(), SECONDS, jax.random.PRNGKey(1), backend="warp")
+        walk = lambda: rollout(ROBOT, TERRAIN, CTRL, CTRL.default_params(), SECONDS, jax.random.PRNGKey(1), backend="warp",
+                               physics=PHYSICS)
         out = walk()
         _agree(mjx_run, out)
         if jax.default_backend() == "cpu":

@@ -14,9 +14,9 @@ from hexjax.experiments.registry import commands, experiments
 @pytest.mark.cost(95)
 def test_evaluate_obstacles_lose_distance(tmp_path, default_xla_env):
     """Without the tactile method the robot loses distance on obstacle terrain, the table shows it (with its
-    legend), and nothing NaNs. One compile serves both categories (padded to one box count). The command runs
-    as a user runs it, in a process of its own with XLA's default flags (tests/conftest.py: the suite's flags
-    slow the elliptic cone's solve about twofold; 43 s warm there against 84 s in the suite's process)."""
+    legend), and nothing NaNs. On a CPU-only host `validated` runs on MuJoCo C with the reference's settings, the
+    fastest engine it certifies there: the header says so and the JSON records it. The command runs as a user
+    runs it, in a process of its own."""
     out = tmp_path / "ev.json"
     r = subprocess.run([sys.executable, "-m", "hexjax.cli", "evaluate", "--gait", "tripod", "--distance", "1.0",
                         "--batch", "8", "--seed", "3", "--categories", "flat,high-large", "--json", str(out)],
@@ -31,6 +31,10 @@ def test_evaluate_obstacles_lose_distance(tmp_path, default_xla_env):
     assert obst["advance_m"] < flat["advance_m"] - 0.05  # lost > 5 cm of the metre on average
     assert obst["abs_dx_cm"] > flat["abs_dx_cm"]
     assert np.isfinite(obst["env_steps_per_s"]) and obst["env_steps_per_s"] > 0
+    assert "engine: c with reference's settings (the fastest certified engine on this CPU-only host)" in table
+    engine = res["physics"]["engine"]
+    assert res["physics"]["name"] == "validated" and res["physics"]["iterations"] == 100
+    assert (engine["backend"], engine["settings"]) == ("c", "reference") and res["config"]["physics_backend"] == "c"
 
 
 def test_help_and_errors_import_no_jax():

@@ -50,6 +50,20 @@ def mujoco_c_steps_per_s(robot: str, terrain: str, physics: PhysicsConfig, secon
     return n / (time.perf_counter() - t0)
 
 
+def engine_settings(preset, backend: str):
+    """(the settings `backend` runs for `preset`, whether the preset certifies that engine): a certified engine's
+    own settings (`pick_engine`: MuJoCo C runs the reference's for `validated`), else the preset's (timed all the
+    same, marked uncertified). The returned preset's `settings_name` names where the settings come from."""
+    import types
+
+    from hexjax.sim.physics import pick_engine
+    listed = {e[0] for e in preset.engines}
+    if backend in listed:
+        e = pick_engine(preset, backend)
+        return types.SimpleNamespace(config=e.preset.config, settings_name=e.settings), True
+    return types.SimpleNamespace(config=preset.config, settings_name=preset.name), False
+
+
 def bench(robot: str = "luneckas2020", batches: Sequence[int] = (16, 64, 256), sim_seconds: float = 2.0,
           terrains: Sequence[str] = ("flat", "high-large"), gait: str = "tripod",
           physics: Sequence = ("validated",), repeats: int = 2, progress: bool = True,
@@ -112,7 +126,8 @@ def bench(robot: str = "luneckas2020", batches: Sequence[int] = (16, 64, 256), s
         params = ctrl.default_params()
         tspec = get_terrain(tname)
         terr = sample(tspec, jax.random.PRNGKey(0), b)
-        phys = presets[pname].config(tspec)
+        settings, certified = engine_settings(presets[pname], be)
+        phys = settings.config(tspec)
         n_phys = steps[pname]
         kw = dict(physics=phys, config=cfg, backend=be, nthread=nthread or None, mesh=mesh)
         out, st = rollout(spec, terr, ctrl, params, sim_seconds, jax.random.PRNGKey(1), stats=True, **kw)
@@ -124,7 +139,7 @@ def bench(robot: str = "luneckas2020", batches: Sequence[int] = (16, 64, 256), s
             jax.block_until_ready(out.end_pose)
             best = min(best, time.perf_counter() - t0)
         rows.append(dict(terrain=tname, batch=b, controller=cname, backend=be, physics=pname,
-                         iterations=phys.iterations, cone=phys.cone, pairs=sim_model(spec, phys).n_pairs,
+                         settings=settings.settings_name, certified=certified, iterations=phys.iterations, cone=phys.cone, pairs=sim_model(spec, phys).n_pairs,
                          compile_s=round(compile_s, 2), compiled=compiled, first_call_s=round(first, 2),
                          repeats=repeats,
                          run_s=round(best, 4), env_steps_per_s=round(b * n_phys / best, 1),

@@ -14,7 +14,7 @@ from hexjax.control.registry import make_controller
 from hexjax.sim.metrics import batch_stats, goal_errors
 from hexjax.sim.config import RolloutConfig
 from hexjax.sim.model import sim_model
-from hexjax.sim.physics import PhysicsPreset, get_physics, shared_config
+from hexjax.sim.physics import PhysicsPreset, pick_engine, shared_config
 from hexjax.sim.rollout import BACKENDS, rollout
 from hexjax.world.presets import get_robot, get_terrain
 from hexjax.world.terrain import LUNECKAS2020_CATEGORIES, pad_terrain, sample
@@ -29,10 +29,10 @@ def evaluate(robot: str = "luneckas2020", gait: str = "tripod", distance: float 
     """Walk `distance` m with the open-loop Luneckas 2020 gait on each category; returns
     {"config": ..., "categories": {name: batch_stats + env_steps_per_s}, "physics": the preset's record}.
     robot, categories: preset names or YAML paths; physics: a physics preset (name, .yaml path or
-    `PhysicsPreset`); backend: the physics engine ('mjx', 'warp', 'c'; default the preset's; see
-    `hexjax.sim.rollout.rollout`)."""
-    preset = get_physics(physics)
-    backend = backend or preset.backend
+    `PhysicsPreset`); backend: the physics engine ('mjx', 'warp', 'c'; default: the fastest engine certified for
+    the preset on this host, `hexjax.sim.physics.pick_engine`)."""
+    engine = pick_engine(physics, backend)  # the fastest certified engine on this host, or the one asked for
+    preset, backend = engine.preset, engine.backend
     if not (isinstance(distance, (int, float)) and 0 < distance <= 20):
         raise ValueError(f"distance={distance!r}: must be in (0, 20] m")
     if not isinstance(batch, int) or batch < 1:
@@ -65,7 +65,7 @@ def evaluate(robot: str = "luneckas2020", gait: str = "tripod", distance: float 
                            step_length_m=float(params.step_length), swing_time_s=float(params.swing_time),
                            slots_per_leg=physics.slots_per_leg, torso_slots=physics.torso_slots,
                            backend=jax.default_backend(), devices=len(jax.devices()), physics_backend=backend),
-            "categories": results, "physics": preset.record(backend)}
+            "categories": results, "physics": engine.record()}
 
 
 def format_table(result: Dict) -> str:

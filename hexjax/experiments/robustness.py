@@ -113,12 +113,19 @@ def solver_note(kind: str, backend: str, iterations: int):
 
 
 def _digest(o) -> str:
-    from hexjax.sim.physics import get_physics
     keys = ("controllers", "axis", "batch", "terrain", "robot", "distance", "seed", "randomization", "per_env",
             "backend")
     blob = {k: getattr(o, k) for k in keys}
-    blob["physics"] = get_physics(o.physics).record(o.backend or None)
+    blob["physics"] = _engine(o).record()
     return hashlib.sha256(json.dumps(blob, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def _engine(o):
+    """The engine the sweep runs (`hexjax.sim.physics.pick_engine`; MJX across several processes)."""
+    import jax
+
+    from hexjax.sim.physics import pick_engine
+    return pick_engine(o.physics, o.backend or None, exclude={"c", "warp"} if jax.process_count() > 1 else ())
 
 
 def _controllers(names, default_robot):
@@ -181,15 +188,14 @@ def sweep(o) -> Dict:
     from hexjax.control.tactile import overcome_height
     from hexjax.sim.metrics import batch_stats, goal_errors
     from hexjax.sim.config import RolloutConfig
-    from hexjax.sim.physics import get_physics
     from hexjax.sim.rollout import make_mesh, rollout
     from hexjax.tune.space import with_values
     from hexjax.world.presets import get_robot, get_terrain
     from hexjax.world.randomization import sample_perturbation
     from hexjax.world.terrain import leg_scale, pad_terrain, sample
 
-    preset = get_physics(o.physics)
-    backend = o.backend or preset.backend
+    engine = _engine(o)
+    preset, backend = engine.preset, engine.backend
     if backend != "mjx" and jax.process_count() > 1:
         raise ValueError(f"--backend={backend}: several processes need --backend mjx")
     robot = get_robot(o.robot)
@@ -301,7 +307,7 @@ def sweep(o) -> Dict:
                            robots={c: plan[c][1].name for c in ctrls},
                            durations_s={c: plan[c][2] for c in ctrls}, backend=jax.default_backend(),
                            devices=n_dev, processes=jax.process_count(), physics_backend=backend),
-            "cells": rows, "envelope": env, "compile_s": compile_s, "physics": preset.record(backend)}
+            "cells": rows, "envelope": env, "compile_s": compile_s, "physics": engine.record()}
 
 
 def _host_devices():

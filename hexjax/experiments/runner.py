@@ -137,9 +137,15 @@ def run(entry: Entry, o: types.SimpleNamespace) -> Dict[str, Any]:
         given = o.physics if isinstance(o.physics, list) else [o.physics]  # `hexjax bench` times several
         presets = [get_physics(n) for n in given]  # a bad file or value: one line, before anything runs
         backend = getattr(o, "backend", "")
-        backend = ",".join(backend) if isinstance(backend, list) else backend  # `hexjax bench --backend mjx,c`
-        for p in presets:
-            print(p.header(backend or None), flush=True)
+        if isinstance(backend, str) and "backend" in names:
+            # an evaluation: the fastest engine certified for the preset on this host, or the one --backend names
+            # (a backend the preset does not certify: one line, before anything runs)
+            from hexjax.sim.physics import pick_engine
+            print(pick_engine(presets[0], backend or None).header(), flush=True)
+        else:
+            backend = ",".join(backend) if isinstance(backend, list) else backend  # `hexjax bench --backend mjx,c`
+            for p in presets:
+                print(p.header(backend or None), flush=True)
         preset = presets if isinstance(o.physics, list) else presets[0]
     mod = importlib.import_module(entry.entry)
     res = mod.run(o, entry)

@@ -7,13 +7,21 @@ culling (how many terrain boxes each leg and the torso collide with at a time in
 
     reference   MuJoCo C, float64, converged (iterations >= 100, tolerance <= 1e-10), elliptic cone, every
                 terrain box a geom: the physics every other preset is measured against (`hexjax fidelity`)
-    validated   the cheapest MJX settings whose every cell of the fidelity matrix is within the contract of
-                `reference` (docs/physics.md): the default of every command that reports results
+    validated   a contract, not one engine: the engine/settings pairs whose every cell of the fidelity matrix is
+                within the contract of `reference` (docs/physics.md), listed in its `engines`; the default of every
+                command that reports results, which runs the fastest of them on the host (`pick_engine`)
     fast        two Newton iterations and the pyramidal cone, for throughput and RL; its deviations from
                 `reference` are measured in docs/physics.md
 
-A preset file is checked on load like every other preset (unknown key, wrong type, out-of-range value: one
-ValueError line naming the file, the key and the value), before anything is traced.
+A preset file is checked on load like every other preset (unknown key, wrong type, out-of-range value, an empty
+file: one ValueError line naming the file, the key and the value), before anything is traced.
+
+Engines by job. A preset's `engines` lists the engine/settings pairs certified to compute its physics: each a
+backend, the preset whose settings that backend runs, and the `hexjax fidelity` JSON whose every cell meets the
+contract (its paired 95 % interval within the band) for that pair; the reference runs its own settings and needs
+no certificate. An evaluation command runs the fastest certified pair on the host (`pick_engine`: MuJoCo C on a
+CPU-only host, where it is 14x MJX at the same contract; MuJoCo Warp, then MJX, on a GPU), prints which and writes
+it into its JSON; `--backend` picks another certified one. Gradients always run MJX (the preset's own settings).
 """
 
 from __future__ import annotations
@@ -21,13 +29,15 @@ from __future__ import annotations
 import dataclasses
 import os
 import types
-from typing import Any, Dict, Optional
+from typing import Any, Dict, Optional, Tuple
 
 from hexjax.sim.config import PhysicsConfig, physics_for
 from hexjax.world.files import build, read_yaml, resolve
 
 PHYSICS_BACKENDS = ("mjx", "warp", "c")
 DEFAULT_PRESET = "validated"  # what every results command runs unless --physics says otherwise
+# fastest first, as measured on the tactile gait over high-large (docs/benchmarks.md, "Engines by job")
+ENGINE_ORDER = {"cpu": ("c", "mjx", "warp"), "gpu": ("warp", "mjx", "c")}
 SETTINGS = ("timestep", "iterations", "ls_iterations", "tolerance", "ls_tolerance", "cone", "impratio",
             "integrator")
 
@@ -51,10 +61,23 @@ class PhysicsPreset:
     integrator: str = "implicitfast"
     slots_per_leg: Optional[int] = None
     torso_slots: Optional[int] = 2
+    # (backend, preset whose settings it runs, certifying fidelity JSON relative to the repository or ""): the
+    # engines certified for this preset's physics (module docstring); empty: the preset's own engine only
+    engines: Tuple[Tuple[str, str, str], ...] = ()
 
     def validate(self) -> None:
         if self.backend not in PHYSICS_BACKENDS:
             raise ValueError(f"physics.backend={self.backend!r}: use one of {PHYSICS_BACKENDS}")
+        seen = [e[0] for e in self.engines]
+        for i, (be, settings, _) in enumerate(self.engines):
+            if be not in PHYSICS_BACKENDS:
+                raise ValueError(f"physics.engines[{i}][0]={be!r}: use one of {PHYSICS_BACKENDS}")
+            if be in seen[:i]:
+                raise ValueError(f"physics.engines[{i}][0]={be!r}: an engine listed twice")
+            if not settings:
+                raise ValueError(f"physics.engines[{i}][1]={settings!r}: name the preset whose settings it runs")
+        if self.engines and self.backend not in seen:
+            raise ValueError(f"physics.engines: lists {seen} but not the preset's own backend {self.backend!r}")
         self.config().validate()
 
     def config(self, terrain=None, kind: Optional[str] = None) -> PhysicsConfig:
@@ -75,6 +98,7 @@ class PhysicsPreset:
         (`backend` where a command's --backend chose another than the preset's)."""
         out = dataclasses.asdict(self)
         out.pop("summary")
+        out.pop("engines")
         out["backend"] = backend or self.backend
         out["precision"] = "float64" if out["backend"] == "c" else "float32"
         return out
@@ -102,6 +126,71 @@ def shared_config(preset: PhysicsPreset, specs) -> PhysicsConfig:
     return preset.config(most, kind="mixed")
 
 
+@dataclasses.dataclass(frozen=True)
+class Engine:
+    """What an evaluation runs for a physics preset (`pick_engine`): `preset` carries the settings the engine runs
+    under the asked-for preset's name; `backend` the engine; `settings` the preset those settings come from;
+    `certificate` the fidelity JSON that certifies the pair ("" for the reference itself or an uncertified
+    preset's own engine); `why` how it was chosen."""
+
+    preset: PhysicsPreset
+    backend: str
+    settings: str
+    certificate: str
+    why: str
+
+    def record(self) -> Dict[str, Any]:
+        """The run's physics for a result's JSON: the preset's record (its name, the settings run, the engine)
+        with how the engine was chosen."""
+        return self.preset.record(self.backend) | {"engine": dict(backend=self.backend, settings=self.settings,
+                                                                   certificate=self.certificate, picked=self.why)}
+
+    def header(self) -> str:
+        return self.preset.header(self.backend) + f"\nengine: {self.backend} with {self.settings}'s settings ({self.why})"
+
+
+def engine_available(backend: str) -> bool:
+    """Whether this process can step physics with `backend` (MuJoCo Warp needs warp-lang; the others are always
+    installed)."""
+    if backend != "warp":
+        return True
+    import importlib.util
+    return importlib.util.find_spec("warp") is not None
+
+
+def pick_engine(preset, backend: Optional[str] = None, platform: Optional[str] = None, exclude=()) -> Engine:
+    """The engine an evaluation of physics `preset` (name, path or `PhysicsPreset`) runs: `backend` where given
+    (one of the preset's certified engines, or any engine for a preset that lists none: its own settings),
+    else the fastest certified engine available on `platform` (default: JAX's default backend; `ENGINE_ORDER`)
+    and not in `exclude` (engines that cannot run the job: MJX's alone for gradients). One ValueError line for a
+    backend the preset does not certify."""
+    p = get_physics(preset)
+    if not p.engines:
+        be = backend or p.backend
+        if be not in PHYSICS_BACKENDS:
+            raise ValueError(f"backend={be!r}: use one of {PHYSICS_BACKENDS}")
+        why = "asked for (--backend)" if backend else f"the {p.name} preset's own"
+        return Engine(p, be, p.name, "", why)
+    table = {e[0]: e for e in p.engines}
+    if backend:
+        if backend not in table:
+            raise ValueError(f"backend={backend!r}: physics {p.name!r} is certified on {', '.join(table)} only "
+                             "(its engines; docs/physics.md)")
+        be, why = backend, "asked for (--backend)"
+    else:
+        if platform is None:
+            import jax
+            platform = jax.default_backend()
+        kind = "cpu" if platform == "cpu" else "gpu"
+        be = next(b for b in ENGINE_ORDER[kind] + (p.backend,)
+                  if b in table and engine_available(b) and (b not in exclude or b == p.backend))
+        why = f"the fastest certified engine on this {'CPU-only host' if kind == 'cpu' else platform.upper()}"
+    _, settings, cert = table[be]
+    run = p if settings == p.name else dataclasses.replace(get_physics(settings), name=p.name, summary=p.summary,
+                                                           engines=())
+    return Engine(dataclasses.replace(run, backend=be), be, settings, cert, why)
+
+
 def traced_backend(preset: PhysicsPreset, why: str) -> str:
     """The preset's engine where it is MJX's (JAX or Warp), for a run that reads what only MJX records (`why`);
     one ValueError line for a MuJoCo C preset."""
@@ -123,7 +212,11 @@ def get_physics(name=None, /, **overrides) -> PhysicsPreset:
         if not isinstance(name, (str, os.PathLike)) or not str(name):
             raise ValueError(f"physics={name!r}: give a preset name (reference, validated, fast) or a .yaml path")
         path = resolve("physics", name)
-        base, source = build(PhysicsPreset, read_yaml(path), str(path), "physics", defaults={"name": path.stem}), str(path)
+        raw = read_yaml(path)
+        if not raw:
+            raise ValueError(f"{path}: an empty physics preset: give its settings (docs/configs.md lists the keys; "
+                             "configs/physics/validated.yaml is a complete one)")
+        base, source = build(PhysicsPreset, raw, str(path), "physics", defaults={"name": path.stem}), str(path)
     if not overrides:
         base.validate()
         return base

@@ -7,8 +7,9 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+import os
 import time
-from typing import Optional
+from typing import Optional, Tuple
 
 import jax
 import jax.extend
@@ -139,6 +140,26 @@ def _shard_map_without_empty_arrays(f, mesh: Mesh, specs, out_specs, args):
                          check_vma=False)(*(leaves[i] for i in full))
 
 
+def resolve_physics(physics, backend: Optional[str], terrain, controller, config: RolloutConfig,
+                    mesh) -> Tuple[PhysicsConfig, str]:
+    """(PhysicsConfig, backend) of a `rollout` call from its `physics` and `backend` arguments (`rollout`'s
+    docstring): a preset's config for the terrain and its fastest certified engine that can run the call."""
+    if isinstance(physics, PhysicsConfig):
+        return physics, backend or "mjx"
+    from hexjax.sim.physics import PhysicsPreset, get_physics, pick_engine
+    if not (physics is None or isinstance(physics, (str, os.PathLike, PhysicsPreset))):
+        raise ValueError(f"physics={physics!r}: give a preset name (validated, reference, fast), a .yaml path, a "
+                         "PhysicsPreset or a PhysicsConfig")
+    exclude = set()
+    if mesh is not None or config.solver_grad != "none" or config.grad_window or config.remat:
+        exclude = {"c", "warp"}
+    elif config.record or getattr(controller, "sensor", None) is not None:
+        exclude = {"c"}
+    engine = pick_engine(get_physics(physics), backend, exclude=exclude)
+    flat = hasattr(terrain, "box_valid") and not np.any(np.asarray(terrain.box_valid))
+    return engine.preset.config(kind="flat" if flat else None), engine.backend
+
+
 def check_static(robot: RobotSpec, controller, duration, physics: PhysicsConfig, config: RolloutConfig) -> int:
     """Host-side checks of what a compiled rollout is specialised on; returns the control steps."""
     robot.validate(); physics.validate(); config.validate()
@@ -147,9 +168,6 @@ def check_static(robot: RobotSpec, controller, duration, physics: PhysicsConfig,
                          "(the protocol the rollout calls)")
     if not (isinstance(duration, (int, float)) and math.isfinite(duration) and duration > 0):
         raise ValueError(f"duration={duration!r}: must be a finite number of seconds > 0")
-    if config.solver_grad == "implicit" and physics.cone != "pyramidal":
-        raise ValueError(f"physics.cone={physics.cone!r}: rollout.solver_grad='implicit' supports the "
-                         "pyramidal cone only (use solver_grad='unrolled')")
     n_ctrl = control_steps(duration, controller.dt)
     n_all = total_physics_steps(config, physics, controller.dt, n_ctrl)
     if n_all > 2 ** 31 - 1:  # the scan's step index and the step counts are int32
@@ -158,13 +176,20 @@ def check_static(robot: RobotSpec, controller, duration, physics: PhysicsConfig,
 
 
 def rollout(robot: RobotSpec, terrain: Terrain, controller: Controller, params, duration: float, key, *,
-            physics: PhysicsConfig = PhysicsConfig(), sensors: SensorConfig = SensorConfig(),
+            physics=None, sensors: SensorConfig = SensorConfig(),
             config: RolloutConfig = RolloutConfig(), params_batched: bool = False,
-            mesh: Optional[Mesh] = None, backend: str = "mjx", nthread: Optional[int] = None, stats: bool = False,
-            perturbation=None):
+            mesh: Optional[Mesh] = None, backend: Optional[str] = None, nthread: Optional[int] = None,
+            stats: bool = False, perturbation=None):
     """Roll out a batch of hexapods, one per terrain of `terrain` (leading axis B).
 
-    backend: which engine steps the physics; the control step, sensors and summary are the same.
+    physics: a physics preset (its name, a .yaml path or a `PhysicsPreset`; default None: `validated`, the
+    physics every hexjax result reports) or a `PhysicsConfig` of raw solver settings. A preset's slot counts for
+    the terrain boxes are its own or 2 per leg and 2 for the torso (none on flat ground); for a terrain preset's own
+    (8 torso slots on stepping stones) pass `get_physics(name).config(terrain_spec)`.
+    backend: which engine steps the physics; the control step, sensors and summary are the same. None: with a
+    preset, the fastest engine certified for it on this host (`hexjax.sim.physics.pick_engine`: MuJoCo C on a
+    CPU-only host, MuJoCo Warp or MJX on a GPU) among those that can run the call (MJX for a mesh; MJX or Warp
+    for traces beyond the torso's or a range sensor); with a `PhysicsConfig`, 'mjx'.
       'mjx'  MJX's JAX implementation (default): any device, differentiable (`rollout_function`), shardable.
       'warp' MJX with MuJoCo Warp kernels (`impl='warp'`; CUDA GPU or CPU; needs warp-lang). Forward only;
              observations come from MuJoCo contact sensors in the model.
@@ -184,6 +209,7 @@ def rollout(robot: RobotSpec, terrain: Terrain, controller: Controller, params, 
     with `stats`.
     All inputs are checked on the host before anything is traced."""
     t0 = time.perf_counter()
+    physics, backend = resolve_physics(physics, backend, terrain, controller, config, mesh)
     n_ctrl = check_static(robot, controller, duration, physics, config)
     if backend not in BACKENDS:
         raise ValueError(f"backend={backend!r}: use one of {BACKENDS}")

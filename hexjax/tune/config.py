@@ -49,7 +49,7 @@ class TuneConfig:
     solver_iterations: Optional[int] = None
     # a physics preset (name or .yaml, on MJX) for the training rollouts instead of the terrain's default physics
     # with `solver_iterations`: `validated` tunes on the physics the results are reported on (CMA-ES's hard
-    # objective; the implicit gradient needs a pyramidal-cone preset)
+    # objective; the implicit gradient takes either cone, forward mode the pyramidal one)
     train_physics: Optional[str] = None
     # the physics preset the held-out and validation evaluations run (docs/physics.md): the figures a tuning
     # reports are judged on it, whatever physics the training rollouts take (an MJX preset: mjx or warp)

@@ -48,10 +48,10 @@ def tune(cfg: TuneConfig, out_dir: str, resume: bool = True, progress: bool = Tr
     to out_dir/tune.png. `time_limit` (s) stops early, at a step boundary."""
     t_start = time.perf_counter()
     problem = Problem.build(cfg)
-    if cfg.solver_grad == "implicit" and problem.physics().cone != "pyramidal":
+    if cfg.backward == "forward" and problem.physics().cone != "pyramidal":
         raise ValueError(f"tune.train_physics={cfg.train_physics!r}: its {problem.physics().cone} cone has no "
-                         "implicit gradient (solver_grad: implicit needs the pyramidal cone); use solver_grad: "
-                         "unrolled, or tune it with --method es")
+                         "forward-mode gradient (backward: forward needs the pyramidal cone); use backward: "
+                         "sequential or parallel")
     iterations = problem.physics().iterations
     if cfg.controller == "cpg" and iterations < 4:
         print(f"note: the CPG on yu2019 needs solver_iterations >= 4 for gradients that agree with finite "

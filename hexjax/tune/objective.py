@@ -167,7 +167,7 @@ class Problem:
 
     def physics(self) -> PhysicsConfig:
         """The training rollouts' physics (and CMA-ES's hard objective's): the terrain's, with `solver_iterations`
-        Newton iterations where the config sets them (MJX's pyramidal cone, which the implicit gradient needs).
+        Newton iterations where the config sets them (MJX's pyramidal cone).
         The reported figures are judged on `eval_physics()`. With `train_physics` set: that preset's solver."""
         if self.cfg.train_physics is not None:
             return self._preset_physics(self.cfg.train_physics)

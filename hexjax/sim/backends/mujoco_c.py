@@ -238,6 +238,8 @@ def rollout_c(robot: RobotSpec, terrain, controller, params, n_ctrl: int, keys, 
                     yaw = np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
                     poses.append(np.concatenate([new_state[:, 1:4], yaw[:, None]], 1))
                 sens = np.where(finite[:, None], sd_out[:, -1], sens)
+                if config.progress_every and (i + 1) % config.progress_every == 0:  # as the MJX scan reports
+                    sim_step._report_progress(i + 1)
                 if progress:
                     bar.update(1)
             trace = np.stack(poses, 1).astype(np.float32) if config.record else None

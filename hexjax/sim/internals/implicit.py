@@ -10,7 +10,12 @@ vanishes at the solution a*(theta), where theta stands for everything the solve 
 the mass matrix M, the smooth force qfrc_smooth, the constraint Jacobian J, its impedance D and reference
 acceleration aref (all of them functions of the state, the controls and the model). For the pyramidal cone,
 f(r) = -D r on the active rows, so the Hessian is H = M + J^T diag(D active) J, the matrix MJX's Newton
-iteration already factors. The implicit function theorem gives
+iteration already factors. For the elliptic cone each contact's rows are in one of three zones of the cone
+(MuJoCo's documentation, "Computation: elliptic cones"): above it (no force), below it (the rows are
+quadratic, as pyramidal rows: diag(D)), or on its surface, where the cost 0.5 Dm (n - mu |t|)^2 of the
+contact's normal and tangential residuals (n, t) has a dense condim x condim block. H is then
+M + J^T C J with C block-diagonal: diag(D active) plus the surface contacts' blocks, again the matrix of MJX's
+Newton iteration (its `_update_gradient`). The implicit function theorem gives
 
     d a* / d theta = -H^{-1} dg/dtheta      (active set held fixed).
 
@@ -62,28 +67,37 @@ def _cotangent(m, d, a_star, cts, rebuild, xf):
       1. the forces' cotangents reach a and theta directly: (a1, t1) = F^T (0, cts_qfrc, cts_efc);
       2. qacc's whole cotangent, cts_qacc + a1, goes through the minimiser: u = H^{-1} (cts_qacc + a1) and
          t2 = -(dg/dtheta)^T u = F^T (-u, u, 0) on theta;
-    the answer is t1 + t2, with H = M + J^T diag(D active) J at a_star (H is symmetric)."""
+    the answer is t1 + t2, with H the Newton Hessian at a_star (`newton_solve`; H is symmetric)."""
     ca, cf, ce = cts
 
     def f(a, xf_):
         m_, d_ = rebuild(xf_)
         with jax.named_scope("hx.implicit_residual"):
             c = solver.Context.create(m_, d_.replace(qacc=a), grad=False)
-            return (c.Ma - d_.qfrc_smooth, c.qfrc_constraint, c.efc_force), c.active
+            return (c.Ma - d_.qfrc_smooth, c.qfrc_constraint, c.efc_force), (c.active, c.h)
 
-    (f1, _, efc), f_vjp, active = jax.vjp(f, a_star, xf, has_aux=True)
+    (f1, _, efc), f_vjp, (active, cone_h) = jax.vjp(f, a_star, xf, has_aux=True)
     a1, t1 = f_vjp((jnp.zeros_like(f1), cf, ce))
-    u = newton_solve(m, d, active, ca + a1)
+    u = newton_solve(m, d, active, ca + a1, cone_h)
     _, t2 = f_vjp((-u, u, jnp.zeros_like(efc)))
     return jax.tree_util.tree_map(jnp.add, t1, t2)
 
 
-def newton_solve(m, d, active, rhs):
-    """H^{-1} rhs with the Newton Hessian H = M + J^T diag(D active) J of the constraint solve at its solution
-    (module docstring), by a Cholesky factorisation of H (symmetrised against rounding)."""
+def newton_solve(m, d, active, rhs, cone_h=None):
+    """H^{-1} rhs with the Newton Hessian of the constraint solve at its solution (module docstring), by a
+    Cholesky factorisation of H (symmetrised against rounding): H = M + J^T diag(D active) J for the pyramidal
+    cone; for the elliptic cone the contacts on the cone's surface add their blocks `cone_h` (ncon, 6, 6: MJX's
+    `Context.h`, zero for the other contacts), each on its own condim rows, as MJX's Newton step does."""
     with jax.named_scope("hx.implicit_hessian"):
         j, dd = d._impl.efc_J, d._impl.efc_D
-        h = support.full_m(m, d) + (j.T * (dd * active)) @ j
+        if m.opt.cone == ConeType.ELLIPTIC and d._impl.contact.dim.size:
+            c = jnp.diag(dd * active)
+            cons = d._impl.contact
+            for i, (condim, addr) in enumerate(zip(cons.dim[cons.dim > 1], cons.efc_address[cons.dim > 1])):
+                c = c.at[addr:addr + condim, addr:addr + condim].add(cone_h[i, :condim, :condim])
+            h = support.full_m(m, d) + j.T @ c @ j
+        else:
+            h = support.full_m(m, d) + (j.T * (dd * active)) @ j
         return jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(0.5 * (h + h.T)), rhs)
 
 
@@ -205,10 +219,8 @@ def solutions_channel():
 
 def implicit_solve(m, d):
     """MJX's `solver.solve(m, d)` in value; its derivative by the implicit function theorem (module docstring).
-    Pyramidal cone only (hexjax's physics; `PhysicsConfig.cone`). Inside a `solution_slot` with a given
-    solution the solver does not run: the step takes that solution, with the same derivative."""
-    if m.opt.cone != ConeType.PYRAMIDAL:
-        raise ValueError("RolloutConfig.solver_grad='implicit' supports the pyramidal friction cone only")
+    Either friction cone (`PhysicsConfig.cone`). Inside a `solution_slot` with a given solution the solver does
+    not run: the step takes that solution, with the same derivative."""
     slot = _SLOTS[-1] if _SLOTS else None
     if slot is not None and slot["given"] is not None:
         a_star, frc, efc = (jax.lax.stop_gradient(x) for x in slot["given"])
