@@ -33,6 +33,8 @@ def evaluate(robot: str = "luneckas2020", gait: str = "tripod", distance: float 
     the preset on this host, `hexjax.sim.physics.pick_engine`)."""
     engine = pick_engine(physics, backend)  # the fastest certified engine on this host, or the one asked for
     preset, backend = engine.preset, engine.backend
+    if progress:
+        print(engine.header(), flush=True)
     if not (isinstance(distance, (int, float)) and 0 < distance <= 20):
         raise ValueError(f"distance={distance!r}: must be in (0, 20] m")
     if not isinstance(batch, int) or batch < 1:

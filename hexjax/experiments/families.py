@@ -58,6 +58,7 @@ def run(o, entry) -> Dict:
     from hexjax.sim.physics import pick_engine
     engine = pick_engine(o.physics, o.backend or None)  # the fastest certified on this host, or --backend's
     preset = engine.preset
+    print(engine.header(), flush=True)
     fams, levels = list(o.families), [float(v) for v in o.levels]
     out: Dict = {"config": dict(batch=o.batch, levels=levels, families=fams, controllers=list(o.controllers),
                                 distance=o.distance, start_x=o.start_x, robot="luneckas2020",

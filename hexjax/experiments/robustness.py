@@ -196,6 +196,8 @@ def sweep(o) -> Dict:
 
     engine = _engine(o)
     preset, backend = engine.preset, engine.backend
+    if jax.process_index() == 0:
+        print(engine.header(), flush=True)
     if backend != "mjx" and jax.process_count() > 1:
         raise ValueError(f"--backend={backend}: several processes need --backend mjx")
     robot = get_robot(o.robot)

@@ -138,14 +138,20 @@ def run(entry: Entry, o: types.SimpleNamespace) -> Dict[str, Any]:
         presets = [get_physics(n) for n in given]  # a bad file or value: one line, before anything runs
         backend = getattr(o, "backend", "")
         if isinstance(backend, str) and "backend" in names:
-            # an evaluation: the fastest engine certified for the preset on this host, or the one --backend names
-            # (a backend the preset does not certify: one line, before anything runs)
+            # an evaluation: the module picks the engine (the fastest certified for the preset on this host, which
+            # needs JAX to know the host) and prints it; a --backend the preset does not certify fails here, in one
+            # line, before anything runs
             from hexjax.sim.physics import pick_engine
-            print(pick_engine(presets[0], backend or None).header(), flush=True)
+            if backend:
+                pick_engine(presets[0], backend)
         else:
             backend = ",".join(backend) if isinstance(backend, list) else backend  # `hexjax bench --backend mjx,c`
+            from hexjax.sim.physics import pick_engine
             for p in presets:
-                print(p.header(backend or None), flush=True)
+                for be in (backend.split(",") if backend else [None]):
+                    # a certified engine runs its own settings (MuJoCo C the reference's for validated)
+                    certified = be in {e[0] for e in p.engines}
+                    print(pick_engine(p, be).header() if certified else p.header(be), flush=True)
         preset = presets if isinstance(o.physics, list) else presets[0]
     mod = importlib.import_module(entry.entry)
     res = mod.run(o, entry)
