@@ -36,7 +36,7 @@ ap.add_argument("--iters", type=int, default=0, help="MJX Newton iterations (0: 
 ap.add_argument("--physics", default="fast", help="physics preset name or .yaml path (an MJX one)")
 ap.add_argument("--cone", default="", choices=["", "pyramidal", "elliptic"], help="override the preset's cone")
 ap.add_argument("--solver-grad", default="unrolled", choices=["unrolled", "implicit"],
-                help="through the Newton iterations, or implicitly at the solution (pyramidal cone only)")
+                help="through the Newton iterations, or implicitly at the solution (either cone)")
 ap.add_argument("--window", type=float, default=0.4, help="rollout seconds after settling")
 ap.add_argument("--settle", type=float, default=0.1)
 ap.add_argument("--eps", default="1e-3,1e-2", help="central-difference steps on the unconstrained scale")

@@ -17,9 +17,9 @@ A preset file is checked on load like every other preset (unknown key, wrong typ
 file: one ValueError line naming the file, the key and the value), before anything is traced.
 
 Engines by job. A preset's `engines` lists the engine/settings pairs certified to compute its physics: each a
-backend, the preset whose settings that backend runs, and the `hexjax fidelity` JSON whose every cell meets the
-contract (its paired 95 % interval within the band) for that pair; the reference runs its own settings and needs
-no certificate. An evaluation command runs the fastest certified pair on the host (`pick_engine`: MuJoCo C on a
+backend, the preset whose settings that backend runs, and the `hexjax fidelity` JSONs whose every cell meets the
+contract (or has a paired 95 % interval that meets the band) for that pair, a later JSON's cells replacing an
+earlier one's (a cell re-run with more envs); the reference runs its own settings and needs no certificate. An evaluation command runs the fastest certified pair on the host (`pick_engine`: MuJoCo C on a
 CPU-only host, where it is 14x MJX at the same contract; MuJoCo Warp, then MJX, on a GPU), prints which and writes
 it into its JSON; `--backend` picks another certified one. Gradients always run MJX (the preset's own settings).
 """
@@ -61,9 +61,10 @@ class PhysicsPreset:
     integrator: str = "implicitfast"
     slots_per_leg: Optional[int] = None
     torso_slots: Optional[int] = 2
-    # (backend, preset whose settings it runs, certifying fidelity JSON relative to the repository or ""): the
+    # (backend, preset whose settings it runs, the fidelity JSONs that certify it, relative to the repository; a
+    # later one's cells replace an earlier one's: more envs deciding a cell; none for the reference itself): the
     # engines certified for this preset's physics (module docstring); empty: the preset's own engine only
-    engines: Tuple[Tuple[str, str, str], ...] = ()
+    engines: Tuple[Tuple[str, str, Tuple[str, ...]], ...] = ()
 
     def validate(self) -> None:
         if self.backend not in PHYSICS_BACKENDS:
@@ -76,8 +77,6 @@ class PhysicsPreset:
                 raise ValueError(f"physics.engines[{i}][0]={be!r}: an engine listed twice")
             if not settings:
                 raise ValueError(f"physics.engines[{i}][1]={settings!r}: name the preset whose settings it runs")
-        if self.engines and self.backend not in seen:
-            raise ValueError(f"physics.engines: lists {seen} but not the preset's own backend {self.backend!r}")
         self.config().validate()
 
     def config(self, terrain=None, kind: Optional[str] = None) -> PhysicsConfig:
@@ -130,20 +129,21 @@ def shared_config(preset: PhysicsPreset, specs) -> PhysicsConfig:
 class Engine:
     """What an evaluation runs for a physics preset (`pick_engine`): `preset` carries the settings the engine runs
     under the asked-for preset's name; `backend` the engine; `settings` the preset those settings come from;
-    `certificate` the fidelity JSON that certifies the pair ("" for the reference itself or an uncertified
+    `certificates` the fidelity JSONs that certify the pair (none for the reference itself or an uncertified
     preset's own engine); `why` how it was chosen."""
 
     preset: PhysicsPreset
     backend: str
     settings: str
-    certificate: str
+    certificates: Tuple[str, ...]
     why: str
 
     def record(self) -> Dict[str, Any]:
         """The run's physics for a result's JSON: the preset's record (its name, the settings run, the engine)
         with how the engine was chosen."""
         return self.preset.record(self.backend) | {"engine": dict(backend=self.backend, settings=self.settings,
-                                                                   certificate=self.certificate, picked=self.why)}
+                                                                   certificates=list(self.certificates),
+                                                                   picked=self.why)}
 
     def header(self) -> str:
         return self.preset.header(self.backend) + f"\nengine: {self.backend} with {self.settings}'s settings ({self.why})"
@@ -162,33 +162,41 @@ def pick_engine(preset, backend: Optional[str] = None, platform: Optional[str] =
     """The engine an evaluation of physics `preset` (name, path or `PhysicsPreset`) runs: `backend` where given
     (one of the preset's certified engines, or any engine for a preset that lists none: its own settings),
     else the fastest certified engine available on `platform` (default: JAX's default backend; `ENGINE_ORDER`)
-    and not in `exclude` (engines that cannot run the job: MJX's alone for gradients). One ValueError line for a
-    backend the preset does not certify."""
+    and not in `exclude` (engines that cannot run the job: MJX's alone for gradients); where none is left, the
+    preset's own settings on its own engine, said so in `why`. One ValueError line for a backend that is neither
+    certified nor the preset's own."""
     p = get_physics(preset)
     if not p.engines:
         be = backend or p.backend
         if be not in PHYSICS_BACKENDS:
             raise ValueError(f"backend={be!r}: use one of {PHYSICS_BACKENDS}")
         why = "asked for (--backend)" if backend else f"the {p.name} preset's own"
-        return Engine(p, be, p.name, "", why)
+        return Engine(p, be, p.name, (), why)
     table = {e[0]: e for e in p.engines}
+    own = (p.backend, p.name, ())  # the preset's own settings on its own engine: what gradients run
     if backend:
-        if backend not in table:
+        if backend not in table and backend != p.backend:
             raise ValueError(f"backend={backend!r}: physics {p.name!r} is certified on {', '.join(table)} only "
-                             "(its engines; docs/physics.md)")
+                             f"(its engines), or runs its own settings on {p.backend} (docs/physics.md)")
         be, why = backend, "asked for (--backend)"
     else:
         if platform is None:
             import jax
             platform = jax.default_backend()
         kind = "cpu" if platform == "cpu" else "gpu"
-        be = next(b for b in ENGINE_ORDER[kind] + (p.backend,)
-                  if b in table and engine_available(b) and (b not in exclude or b == p.backend))
+        be = next((b for b in ENGINE_ORDER[kind] if b in table and engine_available(b) and b not in exclude),
+                  p.backend)
         why = f"the fastest certified engine on this {'CPU-only host' if kind == 'cpu' else platform.upper()}"
-    _, settings, cert = table[be]
+        if be not in table:
+            why = f"the preset's own settings: the job needs {be}, which no certificate covers (docs/physics.md)"
+    if be not in table:
+        if backend:
+            why += f"; {be} at these settings is not certified (docs/physics.md)"
+        table[be] = own
+    _, settings, certs = table[be]
     run = p if settings == p.name else dataclasses.replace(get_physics(settings), name=p.name, summary=p.summary,
                                                            engines=())
-    return Engine(dataclasses.replace(run, backend=be), be, settings, cert, why)
+    return Engine(dataclasses.replace(run, backend=be), be, settings, certs, why)
 
 
 def traced_backend(preset: PhysicsPreset, why: str) -> str:
