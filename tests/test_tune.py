@@ -245,7 +245,8 @@ def test_cli_tune_rejects_bad_configs(capsys):
 
 def test_train_physics_sets_the_training_solver():
     """`train_physics: validated` trains on validated's solver (elliptic cone, 8 iterations) instead of the default
-    one; the implicit gradient, which needs the pyramidal cone, is refused before anything is traced."""
+    one; the gradient in forward mode, whose matrix-free contact rows are pyramidal, is refused on it before
+    anything is traced (the implicit reverse-mode gradient takes the elliptic cone)."""
     from hexjax.tune.grad import tune as tune_grad
     from hexjax.tune.objective import Problem
     default = Problem.build(_small_config()).physics()
@@ -253,8 +254,9 @@ def test_train_physics_sets_the_training_solver():
     cfg = _small_config(train_physics="validated")
     got = Problem.build(cfg).physics()
     assert (got.cone, got.iterations, got.ls_iterations) == ("elliptic", 8, 8)
-    with pytest.raises(ValueError, match="elliptic cone has no implicit gradient"):
-        tune_grad(_small_config(train_physics="validated", solver_grad="implicit"), "/nonexistent", progress=False)
+    with pytest.raises(ValueError, match="elliptic cone has no forward-mode gradient"):
+        tune_grad(_small_config(train_physics="validated", solver_grad="implicit", backward="forward",
+                                grad_clip=None), "/nonexistent", progress=False)
 
 
 def test_held_out_figures_per_terrain_family_follow_the_batch_layout():

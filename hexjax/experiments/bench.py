@@ -139,7 +139,8 @@ def bench(robot: str = "luneckas2020", batches: Sequence[int] = (16, 64, 256), s
             jax.block_until_ready(out.end_pose)
             best = min(best, time.perf_counter() - t0)
         rows.append(dict(terrain=tname, batch=b, controller=cname, backend=be, physics=pname,
-                         settings=settings.settings_name, certified=certified, iterations=phys.iterations, cone=phys.cone, pairs=sim_model(spec, phys).n_pairs,
+                         settings=settings.settings_name, certified=certified, iterations=phys.iterations,
+                         cone=phys.cone, pairs=sim_model(spec, phys).n_pairs,
                          compile_s=round(compile_s, 2), compiled=compiled, first_call_s=round(first, 2),
                          repeats=repeats,
                          run_s=round(best, 4), env_steps_per_s=round(b * n_phys / best, 1),

@@ -19,9 +19,11 @@ file: one ValueError line naming the file, the key and the value), before anythi
 Engines by job. A preset's `engines` lists the engine/settings pairs certified to compute its physics: each a
 backend, the preset whose settings that backend runs, and the `hexjax fidelity` JSONs whose every cell meets the
 contract (or has a paired 95 % interval that meets the band) for that pair, a later JSON's cells replacing an
-earlier one's (a cell re-run with more envs); the reference runs its own settings and needs no certificate. An evaluation command runs the fastest certified pair on the host (`pick_engine`: MuJoCo C on a
-CPU-only host, where it is 14x MJX at the same contract; MuJoCo Warp, then MJX, on a GPU), prints which and writes
-it into its JSON; `--backend` picks another certified one. Gradients always run MJX (the preset's own settings).
+earlier one's (a cell re-run with more envs); the reference runs its own settings and needs no certificate. An
+evaluation command runs the fastest certified pair on the host (`pick_engine`; `ENGINE_ORDER`: MuJoCo C first on a
+CPU-only host, where it runs 20x MJX), prints which and writes it into its JSON; `--backend` picks another
+certified one or the preset's own engine. A job only MJX can run (gradients, a device mesh) runs the preset's own
+settings, recorded as uncertified where no certificate lists them.
 """
 
 from __future__ import annotations
@@ -146,7 +148,9 @@ class Engine:
                                                                    picked=self.why)}
 
     def header(self) -> str:
-        return self.preset.header(self.backend) + f"\nengine: {self.backend} with {self.settings}'s settings ({self.why})"
+        """The physics header's lines: the settings run, then the engine and how it was chosen."""
+        return (self.preset.header(self.backend)
+                + f"\nengine: {self.backend} with {self.settings}'s settings ({self.why})")
 
 
 def engine_available(backend: str) -> bool:
