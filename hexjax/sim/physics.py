@@ -21,7 +21,7 @@ backend, the preset whose settings that backend runs, and the `hexjax fidelity` 
 contract (or has a paired 95 % interval that meets the band) for that pair, a later JSON's cells replacing an
 earlier one's (a cell re-run with more envs); the reference runs its own settings and needs no certificate. An
 evaluation command runs the fastest certified pair on the host (`pick_engine`; `ENGINE_ORDER`: MuJoCo C first on a
-CPU-only host, where it runs 20x MJX), prints which and writes it into its JSON; `--backend` picks another
+CPU-only host, where it runs 19x MJX), prints which and writes it into its JSON; `--backend` picks another
 certified one or the preset's own engine. A job only MJX can run (gradients, a device mesh) runs the preset's own
 settings, recorded as uncertified where no certificate lists them.
 """
