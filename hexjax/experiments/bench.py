@@ -15,7 +15,7 @@ from tqdm.auto import tqdm
 
 from hexjax.control.registry import CONTROLLERS, make_controller
 from hexjax.sim.config import PhysicsConfig, RolloutConfig
-from hexjax.sim.physics import get_physics
+from hexjax.sim.physics import get_physics, timed_settings
 from hexjax.sim.mjcf import compile_mjcf
 from hexjax.sim.model import batch_model, sim_model
 from hexjax.sim.rollout import BACKENDS, make_mesh, rollout
@@ -48,20 +48,6 @@ def mujoco_c_steps_per_s(robot: str, terrain: str, physics: PhysicsConfig, secon
         mujoco.mj_step(m, d)
         n += 1
     return n / (time.perf_counter() - t0)
-
-
-def engine_settings(preset, backend: str):
-    """(the settings `backend` runs for `preset`, whether the preset certifies that engine): a certified engine's
-    own settings (`pick_engine`: MuJoCo C runs the reference's for `validated`), else the preset's (timed all the
-    same, marked uncertified). The returned preset's `settings_name` names where the settings come from."""
-    import types
-
-    from hexjax.sim.physics import pick_engine
-    listed = {e[0] for e in preset.engines}
-    if backend in listed:
-        e = pick_engine(preset, backend)
-        return types.SimpleNamespace(config=e.preset.config, settings_name=e.settings), True
-    return types.SimpleNamespace(config=preset.config, settings_name=preset.name), False
 
 
 def bench(robot: str = "luneckas2020", batches: Sequence[int] = (16, 64, 256), sim_seconds: float = 2.0,
@@ -126,7 +112,7 @@ def bench(robot: str = "luneckas2020", batches: Sequence[int] = (16, 64, 256), s
         params = ctrl.default_params()
         tspec = get_terrain(tname)
         terr = sample(tspec, jax.random.PRNGKey(0), b)
-        settings, certified = engine_settings(presets[pname], be)
+        settings, settings_name, certified = timed_settings(presets[pname], be)
         phys = settings.config(tspec)
         n_phys = steps[pname]
         kw = dict(physics=phys, config=cfg, backend=be, nthread=nthread or None, mesh=mesh)
@@ -139,7 +125,7 @@ def bench(robot: str = "luneckas2020", batches: Sequence[int] = (16, 64, 256), s
             jax.block_until_ready(out.end_pose)
             best = min(best, time.perf_counter() - t0)
         rows.append(dict(terrain=tname, batch=b, controller=cname, backend=be, physics=pname,
-                         settings=settings.settings_name, certified=certified, iterations=phys.iterations,
+                         settings=settings_name, certified=certified, iterations=phys.iterations,
                          cone=phys.cone, pairs=sim_model(spec, phys).n_pairs,
                          compile_s=round(compile_s, 2), compiled=compiled, first_call_s=round(first, 2),
                          repeats=repeats,

@@ -15,7 +15,7 @@ from hexjax.sim.metrics import batch_stats, goal_errors
 from hexjax.sim.config import RolloutConfig
 from hexjax.sim.model import sim_model
 from hexjax.sim.physics import PhysicsPreset, pick_engine, shared_config
-from hexjax.sim.rollout import BACKENDS, rollout
+from hexjax.sim.rollout import rollout
 from hexjax.world.presets import get_robot, get_terrain
 from hexjax.world.terrain import LUNECKAS2020_CATEGORIES, pad_terrain, sample
 
@@ -39,8 +39,6 @@ def evaluate(robot: str = "luneckas2020", gait: str = "tripod", distance: float 
         raise ValueError(f"distance={distance!r}: must be in (0, 20] m")
     if not isinstance(batch, int) or batch < 1:
         raise ValueError(f"batch={batch!r}: must be an integer >= 1")
-    if backend not in BACKENDS:
-        raise ValueError(f"backend={backend!r}: use one of {BACKENDS}")
     spec = get_robot(robot)
     specs = {name: get_terrain(name, length=distance + 0.3) for name in categories}
     ctrl = make_controller("gait", spec, gait=gait, step_height=step_height)

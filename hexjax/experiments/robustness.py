@@ -124,8 +124,8 @@ def _engine(o):
     """The engine the sweep runs (`hexjax.sim.physics.pick_engine`; MJX across several processes)."""
     import jax
 
-    from hexjax.sim.physics import pick_engine
-    return pick_engine(o.physics, o.backend or None, exclude={"c", "warp"} if jax.process_count() > 1 else ())
+    from hexjax.sim.physics import NOT_MJX, pick_engine
+    return pick_engine(o.physics, o.backend or None, exclude=NOT_MJX if jax.process_count() > 1 else ())
 
 
 def _controllers(names, default_robot):

@@ -133,7 +133,7 @@ def run(entry: Entry, o: types.SimpleNamespace) -> Dict[str, Any]:
     preset = None
     names = {opt.name for opt in entry.options}
     if "physics" in names and "against" not in names:  # `hexjax fidelity` names its two presets itself
-        from hexjax.sim.physics import get_physics
+        from hexjax.sim.physics import get_physics, pick_engine, timed_settings
         given = o.physics if isinstance(o.physics, list) else [o.physics]  # `hexjax bench` times several
         presets = [get_physics(n) for n in given]  # a bad file or value: one line, before anything runs
         backend = getattr(o, "backend", "")
@@ -141,17 +141,13 @@ def run(entry: Entry, o: types.SimpleNamespace) -> Dict[str, Any]:
             # an evaluation: the module picks the engine (the fastest certified for the preset on this host, which
             # needs JAX to know the host) and prints it; a --backend the preset does not certify fails here, in one
             # line, before anything runs
-            from hexjax.sim.physics import pick_engine
             if backend:
                 pick_engine(presets[0], backend)
         else:
             backend = ",".join(backend) if isinstance(backend, list) else backend  # `hexjax bench --backend mjx,c`
-            from hexjax.sim.physics import pick_engine
             for p in presets:
                 for be in (backend.split(",") if backend else [None]):
-                    # a certified engine runs its own settings (MuJoCo C the reference's for validated)
-                    certified = be in {e[0] for e in p.engines}
-                    print(pick_engine(p, be).header() if certified else p.header(be), flush=True)
+                    print(timed_settings(p, be)[0].header(be), flush=True)
         preset = presets if isinstance(o.physics, list) else presets[0]
     mod = importlib.import_module(entry.entry)
     res = mod.run(o, entry)

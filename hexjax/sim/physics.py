@@ -40,6 +40,7 @@ PHYSICS_BACKENDS = ("mjx", "warp", "c")
 DEFAULT_PRESET = "validated"  # what every results command runs unless --physics says otherwise
 # fastest first, as measured on the tactile gait over high-large (docs/benchmarks.md, "Engines by job")
 ENGINE_ORDER = {"cpu": ("c", "mjx", "warp"), "gpu": ("warp", "mjx", "c")}
+NOT_MJX = frozenset({"c", "warp"})  # `pick_engine(exclude=...)` for a job only MJX runs (gradients, a mesh)
 SETTINGS = ("timestep", "iterations", "ls_iterations", "tolerance", "ls_tolerance", "cone", "impratio",
             "integrator")
 
@@ -201,6 +202,16 @@ def pick_engine(preset, backend: Optional[str] = None, platform: Optional[str] =
     run = p if settings == p.name else dataclasses.replace(get_physics(settings), name=p.name, summary=p.summary,
                                                            engines=())
     return Engine(dataclasses.replace(run, backend=be), be, settings, certs, why)
+
+
+def timed_settings(preset: PhysicsPreset, backend: Optional[str]) -> Tuple[PhysicsPreset, str, bool]:
+    """What `hexjax bench` times for `preset` on `backend`: (the preset carrying the settings run, the name of the
+    preset they come from, whether `preset` certifies that engine). A certified engine runs its own settings
+    (MuJoCo C the reference's for `validated`); any other engine is timed on the preset's own, uncertified."""
+    if backend in {e[0] for e in preset.engines}:
+        e = pick_engine(preset, backend)
+        return e.preset, e.settings, True
+    return preset, preset.name, False
 
 
 def traced_backend(preset: PhysicsPreset, why: str) -> str:

@@ -146,13 +146,13 @@ def resolve_physics(physics, backend: Optional[str], terrain, controller, config
     docstring): a preset's config for the terrain and its fastest certified engine that can run the call."""
     if isinstance(physics, PhysicsConfig):
         return physics, backend or "mjx"
-    from hexjax.sim.physics import PhysicsPreset, get_physics, pick_engine
+    from hexjax.sim.physics import NOT_MJX, PhysicsPreset, get_physics, pick_engine
     if not (physics is None or isinstance(physics, (str, os.PathLike, PhysicsPreset))):
         raise ValueError(f"physics={physics!r}: give a preset name (validated, reference, fast), a .yaml path, a "
                          "PhysicsPreset or a PhysicsConfig")
     exclude = set()
     if mesh is not None or config.solver_grad != "none" or config.grad_window or config.remat:
-        exclude = {"c", "warp"}
+        exclude = NOT_MJX
     elif config.record or getattr(controller, "sensor", None) is not None:
         exclude = {"c"}
     engine = pick_engine(get_physics(physics), backend, exclude=exclude)
@@ -190,7 +190,7 @@ def rollout(robot: RobotSpec, terrain: Terrain, controller: Controller, params, 
     preset, the fastest engine certified for it on this host (`hexjax.sim.physics.pick_engine`: MuJoCo C on a
     CPU-only host, MuJoCo Warp or MJX on a GPU) among those that can run the call (MJX for a mesh; MJX or Warp
     for traces beyond the torso's or a range sensor); with a `PhysicsConfig`, 'mjx'.
-      'mjx'  MJX's JAX implementation (default): any device, differentiable (`rollout_function`), shardable.
+      'mjx'  MJX's JAX implementation: any device, differentiable (`rollout_function`), shardable.
       'warp' MJX with MuJoCo Warp kernels (`impl='warp'`; CUDA GPU or CPU; needs warp-lang). Forward only;
              observations come from MuJoCo contact sensors in the model.
       'c'    MuJoCo C on `nthread` host threads (default: all cores) through `mujoco.rollout`, every terrain
