@@ -298,3 +298,42 @@ def test_bad_params_raise_before_tracing():
         CPGController(ROBOT, gait="gallop")
     with pytest.raises(ValueError, match="cpg.stance_radial"):
         CPGController(ROBOT, stance_radial=-0.1)
+
+
+def test_each_leg_has_its_own_converter_clearance_and_thresholds():
+    """The per-leg params (`leg_trim`, `leg_clearance`, `leg_f_scale`): a leg's own number moves that leg's
+    converter or gate and no other, and the same number on every leg is the paper's shared one."""
+    ctrl = CPGController(ROBOT)
+    p = ctrl.default_params()
+    lc = linear_converter(ROBOT, p, ctrl.stance_radial)
+    d = jnp.array([[[0.02, -0.01, 0.03], [0.01, 0.0, -0.02]], [[-0.03, 0.02, 0.0], [0.0, 0.01, 0.02]]])
+    shared = linear_converter(ROBOT, p.replace(lc_trim=d), ctrl.stance_radial)
+    each = linear_converter(ROBOT, p.replace(leg_trim=jnp.broadcast_to(d, (6, 2, 2, 3))), ctrl.stance_radial)
+    for f in ("g_sw", "h_sw", "g_st", "h_st", "dg_sw", "dh_sw"):
+        np.testing.assert_array_equal(np.asarray(getattr(shared, f)), np.asarray(getattr(each, f)), err_msg=f)
+    one = linear_converter(ROBOT, p.replace(leg_trim=jnp.zeros((6, 2, 2, 3)).at[RF].set(d)), ctrl.stance_radial)
+    moved = np.abs(np.asarray(one.g_sw) - np.asarray(lc.g_sw)).sum(-1) + np.abs(np.asarray(one.h_st) - np.asarray(lc.h_st)).sum(-1)
+    assert moved[RF] > 0 and np.all(np.delete(moved, RF) == 0)
+    # a leg's clearance: its swing set's apex rises by the offset, every other leg's stays
+    up = p.replace(leg_clearance=jnp.zeros(6).at[RF].set(0.01))
+    q = converter_output(up, linear_converter(ROBOT, up, ctrl.stance_radial), jnp.ones((6, 3, 2)), jnp.ones(6),
+                         jnp.zeros(6), jnp.zeros((6, 3)), jnp.zeros((6, 3)), jnp.zeros(6))
+    q0 = converter_output(p, lc, jnp.ones((6, 3, 2)), jnp.ones(6), jnp.zeros(6), jnp.zeros((6, 3)),
+                          jnp.zeros((6, 3)), jnp.zeros(6))
+    z, z0 = np.asarray(leg_fk(ROBOT, q))[:, 2], np.asarray(leg_fk(ROBOT, q0))[:, 2]
+    assert abs((z - z0)[RF] - 0.01) < 1e-4 and np.all(np.abs(np.delete(z - z0, RF)) < 1e-6)
+    # a leg's thresholds: RF pushed 0.3 N past F_contact-y sees an obstacle; doubling only its factor hides it
+    force = jnp.zeros((6, 3)).at[:, 0].set(-(float(p.f_contact[1]) + 0.3)).at[:, 2].set(15.0)
+    s0 = ctrl.init(p, None)
+    obs = Obs(qpos=s0.q_cmd.reshape(-1), qvel=jnp.zeros(18), torso_pos=jnp.zeros(3),
+              torso_quat=jnp.array([1.0, 0.0, 0.0, 0.0]), foot_force=force, foot_contact=jnp.ones(6, bool),
+              tactile_force=jnp.zeros(6), tactile=jnp.zeros(6, bool), time=jnp.float32(0.0))
+    seen = np.asarray(ctrl.step(p, s0, obs)[0].lam_ob)
+    hid = np.asarray(ctrl.step(p.replace(leg_f_scale=jnp.ones((6, 3)).at[RF].set(2.0)), s0, obs)[0].lam_ob)
+    assert np.all(seen == 1.0) and hid[RF] == 0.0 and np.all(np.delete(hid, RF) == 1.0)
+    with pytest.raises(ValueError, match="cpg.leg_f_scale"):
+        ctrl.validate_params(p.replace(leg_f_scale=jnp.ones((6, 3)).at[0, 2].set(0.0)))
+    with pytest.raises(ValueError, match="cpg.leg_trim shape"):
+        ctrl.validate_params(p.replace(leg_trim=jnp.zeros((2, 2, 3))))
+    with pytest.raises(ValueError, match="leg_clearance"):
+        ctrl.validate_params(p.replace(leg_clearance=jnp.zeros(6).at[2].set(-0.05)))

@@ -47,6 +47,12 @@ def test_space_applies_to_tactile_and_cpg_params_and_grad_flows():
     c1 = cs.apply(jax.tree_util.tree_map(lambda x: x + 0.1, cu), c0)
     assert np.all(np.asarray(c1.lc_trim) > 0) and np.all(np.asarray(c1.f_contact) > np.asarray(c0.f_contact))
     assert np.all(np.asarray(c1.lc_trim) <= 0.3)
+    # the per-leg fields join only when named: 6 x 12 trims, 6 clearance offsets, 6 x 3 threshold factors
+    assert not any(n.startswith("leg_") for n in make_space("cpg").names)
+    legs = make_space("cpg", only=["leg_trim", "leg_clearance", "leg_f_scale"])
+    lu = legs.init(c0)
+    assert sum(int(np.size(v)) for v in lu.values()) == 96
+    np.testing.assert_allclose(np.asarray(legs.apply(lu, c0).leg_f_scale), 1.0, rtol=1e-5)
 
 
 def test_bad_configs_raise_clear_errors():

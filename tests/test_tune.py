@@ -308,3 +308,23 @@ def test_params_presets_load_by_path_and_name(tmp_path, monkeypatch):
         load_values("empty")
     with pytest.raises(ValueError, match="mines"):
         load_values("mines")
+
+
+def test_a_tuning_starts_from_a_params_preset_and_tunes_each_leg():
+    """`start`: the shipped CMA-ES preset's shared numbers replace the hand rules in both the training (smooth)
+    and the judged (hard) params, and cpg_legs tunes the 96 per-leg numbers from there, every leg equal."""
+    from hexjax.tune.config import load_tune_config
+    from hexjax.tune.space import load_values
+
+    cfg = load_tune_config("cpg_legs")
+    pr = Problem.build(cfg)
+    v = load_values(cfg.start)
+    for p in (pr.params0, pr.eval_params0):
+        np.testing.assert_allclose(np.asarray(p.lc_trim), v["lc_trim"], rtol=1e-6)
+        np.testing.assert_allclose(float(p.elevated_clearance), v["elevated_clearance"], rtol=1e-6)
+    assert float(pr.params0.smooth) == 1.0 and float(pr.eval_params0.smooth) == 0.0
+    u = pr.space.init(pr.params0)
+    assert sum(int(np.size(x)) for x in u.values()) == 96
+    np.testing.assert_allclose(np.asarray(pr.space.apply(u, pr.params0).leg_trim), 0.0, atol=1e-6)
+    with pytest.raises(ValueError, match="tune.start='nope'"):
+        load_tune_config("cpg_legs", overrides={"start": "nope"})

@@ -8,7 +8,7 @@ import math
 from typing import Any, Dict, Optional, Tuple
 
 from hexjax.sim.config import GRAD_SOLVERS
-from hexjax.tune.space import ParamSpace, make_space
+from hexjax.tune.space import ParamSpace, load_values, make_space
 from hexjax.world.files import build, read_yaml, resolve
 from hexjax.world.presets import get_terrain
 
@@ -78,6 +78,9 @@ class TuneConfig:
     zo_sigma: float = 0.5
     zo_prior: float = 1.0
     params: Dict[str, Dict[str, float]] = dataclasses.field(default_factory=dict)
+    # the starting numbers: a params preset (configs/params/<name>.yaml) or a tuning log.json whose values replace
+    # the papers' hand rules before tuning (None: the hand rules); its fields need not be among `params`
+    start: Optional[str] = None
     optimizer: Dict[str, object] = dataclasses.field(default_factory=lambda: {"name": "adam", "learning_rate": 0.05})
     objective: Dict[str, float] = dataclasses.field(default_factory=lambda: {"dx": 1.0, "dy": 1.0})
     steps: int = 30
@@ -109,6 +112,13 @@ class TuneConfig:
             if isinstance(getattr(self, f), int) and 0 < getattr(self, f) < len(self.terrains):
                 raise ValueError(f"tune.{f}={getattr(self, f)!r}: needs at least one env per terrain "
                                  f"({len(self.terrains)} terrains)")
+        if self.start is not None:
+            if not isinstance(self.start, str):
+                raise ValueError(f"tune.start={self.start!r}: must be a params preset name or a log.json path")
+            try:
+                load_values(self.start)
+            except ValueError as err:
+                raise ValueError(f"tune.start={self.start!r}: {err}") from None
         if self.es_objective not in ("smooth", "hard"):
             raise ValueError(f"tune.es_objective={self.es_objective!r}: use 'smooth' or 'hard'")
         if self.gates not in GATES:

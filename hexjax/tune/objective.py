@@ -47,7 +47,7 @@ from hexjax.sim.metrics import error_stats, travel_errors
 from hexjax.sim.rollout import rollout_function
 from hexjax.sim.windows import windowed_value_and_grad
 from hexjax.tune.config import TuneConfig
-from hexjax.tune.space import ParamSpace
+from hexjax.tune.space import ParamSpace, load_values, with_values
 from hexjax.world.presets import get_robot
 from hexjax.world.terrain import pad_terrain, sample
 
@@ -263,7 +263,15 @@ def mean_value_and_grad(loss):
 
 
 def _controller(cfg: TuneConfig, robot, smooth: bool):
-    """(controller, starting params = the papers' hand rules, rollout seconds)."""
+    """(controller, starting params = the papers' hand rules or `cfg.start`'s values, rollout seconds)."""
+    c, p, dur = _hand_rules(cfg, robot, smooth)
+    if cfg.start is not None:
+        p = with_values(p, load_values(cfg.start), source=f"tune.start={cfg.start}")
+        c.validate_params(p)
+    return c, p, dur
+
+
+def _hand_rules(cfg: TuneConfig, robot, smooth: bool):
     st = smooth and cfg.gates == "straight_through"
     if cfg.controller == "tactile":
         c, dur = make_controller("tactile", robot, gait=cfg.gait, max_obstacle_height=cfg.max_obstacle_height,

@@ -10,7 +10,8 @@ Presets follow the papers' hand rules and the robots' reach:
 - "tactile" (Luneckas 2020, `TactileGaitController`): l_i, h_i, l_k, h_k, the swing slot (gait period / T) and
   the pad threshold;
 - "cpg" (Yu 2019, `CPGController`): the linear converters' trims (g, h per joint, swing and stance), the
-  F_contact thresholds, T_s, and the elevator's regenerated clearance.
+  F_contact thresholds, T_s, and the elevator's regenerated clearance; named in a config, also each leg's own
+  trims, clearance offset and threshold factors (`PER_LEG`, 96 numbers).
 """
 
 from __future__ import annotations
@@ -190,19 +191,31 @@ SPACES: Dict[str, Dict[str, Bound]] = {
 }
 
 
+# Fields tuned only where a config names them: the per-leg numbers of the Yu 2019 CPG (`CPGParams.leg_*`), each
+# leg's own converter trims, clearance offset and contact-threshold factors (6 x 12 + 6 + 6 x 3 = 96 numbers; the
+# paper gives every leg the same). Bounds keep every leg's point within reach and every threshold positive.
+PER_LEG: Dict[str, Dict[str, Bound]] = {
+    "cpg": {
+        "leg_trim": Bound(-0.15, 0.15),  # rad, on top of lc_trim
+        "leg_clearance": Bound(-0.01, 0.01),  # m, on clearance and elevated_clearance
+        "leg_f_scale": Bound(0.5, 2.0),  # factor on f_contact
+    },
+}
+
+
 def make_space(controller: str, overrides: Optional[Mapping[str, Mapping[str, float]]] = None,
                only: Optional[list] = None) -> ParamSpace:
     """The preset space of `controller` ('tactile' or 'cpg'), restricted to `only` (field names) and with
-    bounds replaced from `overrides` ({field: {"min": lo, "max": hi}}, as in configs/tune/*.yaml)."""
+    bounds replaced from `overrides` ({field: {"min": lo, "max": hi}}, as in configs/tune/*.yaml). The per-leg
+    fields (`PER_LEG`) join only when `only` names them."""
     if controller not in SPACES:
         raise ValueError(f"controller={controller!r}: choose one of {sorted(SPACES)}")
-    base = dict(SPACES[controller])
+    known = {**SPACES[controller], **PER_LEG.get(controller, {})}
     for name in list(only or []) + list(overrides or {}):
-        if name not in base:
+        if name not in known:
             raise ValueError(f"params.{name}: unknown parameter for controller {controller!r}; "
-                             f"tunable: {sorted(base)}")
-    if only:
-        base = {k: base[k] for k in only}
+                             f"tunable: {sorted(known)}")
+    base = {k: known[k] for k in only} if only else dict(SPACES[controller])
     for name, o in (overrides or {}).items():
         if not isinstance(o, Mapping):
             raise ValueError(f"params.{name}={o!r}: must be a mapping of min and max")
@@ -213,8 +226,8 @@ def make_space(controller: str, overrides: Optional[Mapping[str, Mapping[str, fl
             v = o.get(k)
             if k in o and not (v is None and k == "max") and (isinstance(v, bool) or not isinstance(v, (int, float))):
                 raise ValueError(f"params.{name}.{k}={v!r}: must be a number")
-        lo = float(o.get("min", base[name].lo))
-        hi = o.get("max", base[name].hi)
+        lo = float(o.get("min", base.get(name, known[name]).lo))
+        hi = o.get("max", base.get(name, known[name]).hi)
         base[name] = Bound(lo, None if hi is None else float(hi))
     for name, b in base.items():
         b.validate(name)

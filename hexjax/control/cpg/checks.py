@@ -45,16 +45,27 @@ def check_params(robot: RobotSpec, stance_radial: float, p: CPGParams) -> None:
     if np.any(arr("elevated_clearance") < arr("clearance")):
         raise ValueError(f"cpg.elevated_clearance={arr('elevated_clearance').tolist()!r}: must be >= "
                          f"clearance={arr('clearance').tolist()!r}")
-    trim = arr("lc_trim")
-    if trim.shape[-3:] != (2, 2, 3) or not np.all(np.isfinite(trim)):
-        raise ValueError(f"cpg.lc_trim shape={trim.shape!r}: must be finite with shape (2, 2, 3)")
-    # every converter point, at both clearances, must be reachable (batched params: each member)
-    cols = np.broadcast_arrays(*(arr(f) for f in ("step_length", "clearance", "elevated_clearance",
-                                                   "body_height")))
-    for sl, h, he, bh in set(zip(*(c.reshape(-1).tolist() for c in cols))):
+    for f, shape in (("lc_trim", (2, 2, 3)), ("leg_trim", (N_LEGS, 2, 2, 3)), ("leg_clearance", (N_LEGS,)),
+                     ("leg_f_scale", (N_LEGS, 3))):
+        v = arr(f)
+        if v.shape[v.ndim - len(shape):] != shape or not np.all(np.isfinite(v)):
+            raise ValueError(f"cpg.{f} shape={v.shape!r}: must be finite with shape {shape}")
+    if np.any(arr("leg_f_scale") <= 0):
+        raise ValueError(f"cpg.leg_f_scale={arr('leg_f_scale').tolist()!r}: must be > 0 (a factor on f_contact)")
+    # every converter point, at both clearances with each leg's offset, must be reachable (batched params: each
+    # member)
+    lead = np.broadcast_shapes(*(arr(f).shape for f in ("step_length", "clearance", "elevated_clearance",
+                                                        "body_height")), arr("leg_clearance").shape[:-1])
+    cols = [np.broadcast_to(arr(f), lead).reshape(-1) for f in ("step_length", "clearance", "elevated_clearance",
+                                                                "body_height")]
+    legs = np.broadcast_to(arr("leg_clearance"), lead + (N_LEGS,)).reshape(-1, N_LEGS)
+    for sl, h, he, bh, dl in set(zip(*(c.tolist() for c in cols), map(tuple, legs.tolist()))):
         for name, cl in (("clearance", h), ("elevated_clearance", he)):
-            _, ok = leg_ik(robot, converter_points(robot, sl, cl, bh, stance_radial))
+            per_leg = cl + np.asarray(dl)
+            if np.any(per_leg <= 0):
+                raise ValueError(f"cpg.{name}={cl!r} with cpg.leg_clearance={list(dl)!r}: each leg's must be > 0")
+            _, ok = leg_ik(robot, converter_points(robot, sl, per_leg, bh, stance_radial))
             if not bool(np.all(np.asarray(ok))):
                 raise ValueError(
-                    f"cpg.step_length={sl!r}, cpg.{name}={cl!r}, cpg.body_height={bh!r}: the converter's "
-                    f"AEP/PEP/apex are out of reach of robot {robot.name!r}")
+                    f"cpg.step_length={sl!r}, cpg.{name}={cl!r}, cpg.leg_clearance={list(dl)!r}, "
+                    f"cpg.body_height={bh!r}: the converter's AEP/PEP/apex are out of reach of robot {robot.name!r}")

@@ -79,7 +79,8 @@ class CPGController(Controller):
             leg_slot=jnp.asarray(g["leg_slot"], jnp.float32), step_length=jnp.asarray(self.step_length),
             clearance=jnp.asarray(self.clearance), elevated_clearance=jnp.asarray(self.elevated_clearance),
             body_height=jnp.asarray(self.robot.hip_height), lc_trim=jnp.zeros((2, 2, 3)),
-            f_contact=jnp.array([10.0, 10.0, 2.0]), ramp_time=jnp.asarray(0.5),
+            f_contact=jnp.array([10.0, 10.0, 2.0]), leg_trim=jnp.zeros((N_LEGS, 2, 2, 3)),
+            leg_clearance=jnp.zeros(N_LEGS), leg_f_scale=jnp.ones((N_LEGS, 3)), ramp_time=jnp.asarray(0.5),
             elevator_y1=jnp.asarray(-1.0), elevator_window=jnp.asarray(-0.5),
             search_amp=jnp.radians(jnp.array([7.5, 4.0, 2.5])),
             search_sigma=jnp.asarray(1.2), search_freq=jnp.array([0.5, 1.5, 1.5]),
@@ -173,8 +174,9 @@ class CPGController(Controller):
         def pick(a, b):
             return jax.tree_util.tree_map(lambda x, y: jnp.where(fb, x, y), a, b)
 
-        lam_ob = 1.0 - (1.0 - g(jnp.abs(f[:, 1]) - p.f_contact[0], tf)) * (1.0 - g(jnp.abs(f[:, 0]) - p.f_contact[1], tf))
-        lam_td = g(jnp.abs(f[:, 2]) - p.f_contact[2], tf)
+        fc = p.f_contact * p.leg_f_scale  # (6, 3): each leg's F_contact-x, -y, -z
+        lam_ob = 1.0 - (1.0 - g(jnp.abs(f[:, 1]) - fc[:, 0], tf)) * (1.0 - g(jnp.abs(f[:, 0]) - fc[:, 1], tf))
+        lam_td = g(jnp.abs(f[:, 2]) - fc[:, 2], tf)
         lam_ob, lam_td = pick((lam_ob, lam_td), (jnp.zeros(N_LEGS), jnp.ones(N_LEGS)))
         swing, hold, search, failed = s.swing, s.hold, s.search, s.failed
         # Table 2 ATD, "all legs get footholds" (Sect. 5.2): no leg is in the air. A leg is airborne while it

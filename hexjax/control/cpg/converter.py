@@ -75,10 +75,11 @@ def linear_converter(robot: RobotSpec, p: CPGParams, stance_radial: float) -> Li
         h_st = jnp.concatenate([h_a[:, None], 0.5 * (mid[:, 1:] + end[:, 1:])], -1)
         return g_sw, h_sw, g_st, h_st, pts[:, 0], aep
 
-    g_sw, h_sw, g_st, h_st, aep_pt, aep_q = sets(p.clearance)
-    g_hi, h_hi, _, _, _, _ = sets(p.elevated_clearance)
-    t = p.lc_trim
-    return LinearConverter(g_sw=g_sw + t[0, 0], h_sw=h_sw + t[0, 1], g_st=g_st + t[1, 0], h_st=h_st + t[1, 1],
+    g_sw, h_sw, g_st, h_st, aep_pt, aep_q = sets(p.clearance + p.leg_clearance)
+    g_hi, h_hi, _, _, _, _ = sets(p.elevated_clearance + p.leg_clearance)
+    t = p.lc_trim + p.leg_trim  # (6, 2, 2, 3): the shared trim and each leg's own
+    return LinearConverter(g_sw=g_sw + t[:, 0, 0], h_sw=h_sw + t[:, 0, 1], g_st=g_st + t[:, 1, 0],
+                           h_st=h_st + t[:, 1, 1],
                            dg_sw=g_hi - g_sw, dh_sw=h_hi - h_sw,
                            z_aep=-(p.body_height - robot.foot_radius), aep=aep_pt, q_aep=aep_q)
 

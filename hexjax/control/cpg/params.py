@@ -31,6 +31,10 @@ class CPGParams:
     body_height () m: hip above the ground; these fix the converter coefficients through leg IK
     lc_trim (2, 2, 3) rad: added to [swing, stance] x [g, h] x [alpha, beta, gamma] coefficients
     f_contact (3,) N: F_contact-x (lateral), -y (forward), -z (vertical), Eqs. 8-9
+    leg_trim (6, 2, 2, 3) rad: each leg's own trim, added to lc_trim (zero: the paper's one converter per joint)
+    leg_clearance (6,) m: each leg's offset on clearance and elevated_clearance (zero: the paper's one h_max)
+    leg_f_scale (6, 3): each leg's factor on f_contact (one: the paper's thresholds for every leg). These three
+    make the per-leg space of `hexjax.tune.space` ("cpg", fields leg_*): 96 numbers where the paper has 16
     ramp_time () s: T_s of Eq. 11
     elevator_y1 (): the value y_1 is set to by Eq. 10 (at omega_1 = 0.4 pi)
     elevator_window (): the elevator reflex can fire once the swinging leader x_1 is past this value
@@ -57,6 +61,9 @@ class CPGParams:
     body_height: jax.Array
     lc_trim: jax.Array
     f_contact: jax.Array
+    leg_trim: jax.Array
+    leg_clearance: jax.Array
+    leg_f_scale: jax.Array
     ramp_time: jax.Array
     elevator_y1: jax.Array
     elevator_window: jax.Array
