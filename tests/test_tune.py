@@ -326,5 +326,7 @@ def test_a_tuning_starts_from_a_params_preset_and_tunes_each_leg():
     u = pr.space.init(pr.params0)
     assert sum(int(np.size(x)) for x in u.values()) == 96
     np.testing.assert_allclose(np.asarray(pr.space.apply(u, pr.params0).leg_trim), 0.0, atol=1e-6)
+    from hexjax.tune.driver import config_digest
+    assert config_digest(cfg, "grad") != config_digest(dataclasses.replace(cfg, start=None), "grad")
     with pytest.raises(ValueError, match="tune.start='nope'"):
         load_tune_config("cpg_legs", overrides={"start": "nope"})

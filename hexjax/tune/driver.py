@@ -21,6 +21,7 @@ from hexjax.interrupt import keep
 from hexjax.sim.compiled import Compiled
 from hexjax.tune.config import TuneConfig
 from hexjax.tune.objective import Problem, evaluate_held_out
+from hexjax.tune.space import load_values
 
 
 def nonfinite_note(step: int, loss, grad, cfg: TuneConfig) -> Optional[str]:
@@ -70,6 +71,10 @@ def config_digest(cfg: TuneConfig, method: str, also_drop: tuple = ()) -> str:
         drop.append("eval_physics")
     if cfg.train_physics is None:  # digests from before the key hold
         drop.append("train_physics")
+    if cfg.start is None:  # likewise; a start names its numbers too, so an edited preset starts afresh
+        drop.append("start")
+    else:
+        d["start"] = [cfg.start, load_values(cfg.start)]
     for k in drop:
         d.pop(k)
     for k in also_drop:
