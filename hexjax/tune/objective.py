@@ -264,10 +264,13 @@ def mean_value_and_grad(loss):
 
 def _controller(cfg: TuneConfig, robot, smooth: bool):
     """(controller, starting params = the papers' hand rules or `cfg.start`'s values, rollout seconds)."""
-    c, p, dur = _hand_rules(cfg, robot, smooth)
-    if cfg.start is not None:
-        p = with_values(p, load_values(cfg.start), source=f"tune.start={cfg.start}")
-        c.validate_params(p)
+    c, p0, dur = _hand_rules(cfg, robot, smooth)
+    if cfg.start is None:
+        return c, p0, dur
+    p = with_values(p0, load_values(cfg.start), source=f"tune.start={cfg.start}")
+    c.validate_params(p)
+    if cfg.controller == "tactile" and "swing_time" not in cfg.space().names:
+        dur = dur * float(p.swing_time) / float(p0.swing_time)  # a slower started gait needs the longer walk
     return c, p, dur
 
 

@@ -34,7 +34,7 @@ class CPGParams:
     leg_trim (6, 2, 2, 3) rad: each leg's own trim, added to lc_trim (zero: the paper's one converter per joint)
     leg_clearance (6,) m: each leg's offset on clearance and elevated_clearance (zero: the paper's one h_max)
     leg_f_scale (6, 3): each leg's factor on f_contact (one: the paper's thresholds for every leg). These three
-    make the per-leg space of `hexjax.tune.space` ("cpg", fields leg_*): 96 numbers where the paper has 16
+    make the per-leg space of `hexjax.tune.space` (`PER_LEG`): 96 numbers beside the 16 shared ones
     ramp_time () s: T_s of Eq. 11
     elevator_y1 (): the value y_1 is set to by Eq. 10 (at omega_1 = 0.4 pi)
     elevator_window (): the elevator reflex can fire once the swinging leader x_1 is past this value
