@@ -12,8 +12,8 @@ import jax.numpy as jnp
 
 from hexjax.control.base import Controller
 from hexjax.control.cpg.checks import check_params
-from hexjax.control.cpg.converter import (LinearConverter, converter_output, linear_converter, quat_to_body,
-                                          search_output)
+from hexjax.control.cpg.converter import (LinearConverter, contact_neurons, converter_output, linear_converter,
+                                          quat_to_body, search_output)
 from hexjax.control.cpg.params import CPG_GAITS, CPGParams, CPGState, gait_fields
 from hexjax.control.gates import hard_gate, sigmoid_gate
 from hexjax.control.vdp import NetworkParams, locked_state, network_rhs, rk4_step
@@ -174,9 +174,7 @@ class CPGController(Controller):
         def pick(a, b):
             return jax.tree_util.tree_map(lambda x, y: jnp.where(fb, x, y), a, b)
 
-        fc = p.f_contact * p.leg_f_scale  # (6, 3): each leg's F_contact-x, -y, -z
-        lam_ob = 1.0 - (1.0 - g(jnp.abs(f[:, 1]) - fc[:, 0], tf)) * (1.0 - g(jnp.abs(f[:, 0]) - fc[:, 1], tf))
-        lam_td = g(jnp.abs(f[:, 2]) - fc[:, 2], tf)
+        lam_ob, lam_td = contact_neurons(p, f, lambda x: g(x, tf))
         lam_ob, lam_td = pick((lam_ob, lam_td), (jnp.zeros(N_LEGS), jnp.ones(N_LEGS)))
         swing, hold, search, failed = s.swing, s.hold, s.search, s.failed
         # Table 2 ATD, "all legs get footholds" (Sect. 5.2): no leg is in the air. A leg is airborne while it

@@ -1,5 +1,6 @@
 """The linear converter of Yu 2019 Eq. 6 (joint = g x + h), its coefficients from leg inverse kinematics
-(Sect. 3.2), the elevated swing of Eq. 11 and the search motion of Eqs. 14-15."""
+(Sect. 3.2), the elevated swing of Eq. 11, the search motion of Eqs. 14-15, and the contact neurons of Eqs. 8-9
+that read the toe forces."""
 
 from __future__ import annotations
 
@@ -83,6 +84,14 @@ def linear_converter(robot: RobotSpec, p: CPGParams, stance_radial: float) -> Li
                            dg_sw=g_hi - g_sw, dh_sw=h_hi - h_sw,
                            z_aep=-(p.body_height - robot.foot_radius), aep=aep_pt, q_aep=aep_q)
 
+
+
+def contact_neurons(p: CPGParams, f, gate):
+    """Eqs. 8-9: (lambda_ob, lambda_td) (6,) of the toe forces f (6, 3) in the torso frame (x forward, y lateral,
+    z up) against each leg's thresholds, F_contact x leg_f_scale; `gate` is the controller's hard or smooth step."""
+    fc = p.f_contact * p.leg_f_scale  # (6, 3): each leg's F_contact-x (lateral), -y (forward), -z
+    lam_ob = 1.0 - (1.0 - gate(jnp.abs(f[:, 1]) - fc[:, 0])) * (1.0 - gate(jnp.abs(f[:, 0]) - fc[:, 1]))
+    return lam_ob, gate(jnp.abs(f[:, 2]) - fc[:, 2])
 
 
 def converter_output(p, lc: LinearConverter, z, swing, elev, offset, dq_level, searched):
