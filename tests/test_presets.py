@@ -146,6 +146,8 @@ DERIVED_TUNE_CONFIGS = {
         "eval_every": 2, "optimizer": {"name": "sgd", "learning_rate": 0.2, "decay_to": 0.1},
         "train_physics": None, "solver_iterations": 4, "solver_grad": "implicit"}),
     # the runs that made the shipped params presets of the same names (docs/results.md, "Tuned presets")
+    "cpg_step_ditch_grad_gpu": ("cpg_step_ditch_grad", {
+        "train_batch": 64, "held_out_batch": 320, "validation_batch": 160, "eval_every": 4}),
     "cpg_step_ditch_gpu": ("cpg_step_ditch", {
         "train_batch": 128, "held_out_batch": 320, "validation_batch": 160, "steps": 64, "eval_every": 64}),
     "tactile_tripod_es": ("tactile_tripod", {
@@ -207,3 +209,15 @@ def test_shipped_params_presets_load_by_name_into_their_controller():
         made = doc["made_by"]
         assert made["eval_physics"] == "validated", name
         assert made["held_out_objective"] <= made["start_held_out_objective"], name
+
+
+def test_the_shipped_gradient_preset_records_the_run_of_its_config():
+    """cpg_step_ditch_grad's `made_by` matches cpg_step_ditch_grad_gpu: its held-out batch, the rollouts of the
+    picked step at that config's batch, and a training step count within the config's."""
+    from hexjax.tune.config import load_tune_config
+
+    cfg = load_tune_config("cpg_step_ditch_grad_gpu")
+    made = read_yaml(resolve("params", "cpg_step_ditch_grad"))["made_by"]
+    assert made["method"] == "grad" and made["held_out_batch"] == cfg.held_out_batch
+    assert made["rollouts"] == made["step"] * cfg.train_batch and 0 < made["step"] <= cfg.steps
+    assert made["train_physics"] == cfg.train_physics
