@@ -85,7 +85,6 @@ def linear_converter(robot: RobotSpec, p: CPGParams, stance_radial: float) -> Li
                            z_aep=-(p.body_height - robot.foot_radius), aep=aep_pt, q_aep=aep_q)
 
 
-
 def contact_neurons(p: CPGParams, f, gate):
     """Eqs. 8-9: (lambda_ob, lambda_td) (6,) of the toe forces f (6, 3) in the torso frame (x forward, y lateral,
     z up) against each leg's thresholds, F_contact x leg_f_scale; `gate` is the controller's hard or smooth step."""
