@@ -34,6 +34,9 @@ from hexjax.experiments.tuning import parse_sets  # noqa: E402
 from hexjax.tune.config import load_tune_config  # noqa: E402
 
 cfg = load_tune_config(a.config, parse_sets(a.set), merge=True)
+if any(not x.strip().isdigit() for x in a.steps.split(",") if x.strip()):
+    raise SystemExit(f"--steps {a.steps!r}: give iterate numbers, e.g. 8,12")
+extra = {int(x) for x in a.steps.split(",") if x.strip()}
 if a.labels and len(a.labels.split(",")) != len(a.logs):
     raise SystemExit(f"--labels {a.labels!r}: {len(a.labels.split(','))} labels for {len(a.logs)} logs")
 runs = []
@@ -70,7 +73,7 @@ if a.reuse:
             by_step = {e["step"]: e for e in json.load(f)["log"]}
         for row in pr["iterates"]:
             seen[json.dumps(by_step[row["step"]]["params"], sort_keys=True)] = {
-                **{k: row[k] for k in ("objective", "stderr", "goal_error_cm", "fall_pct")},
+                **{k: row[k] for k in ("objective", "stderr", "goal_error_cm", "fall_pct", "nan_envs")},
                 "per_env": np.asarray(row["per_env"])}
 
 
@@ -90,7 +93,7 @@ def _judge(params):
         print(f"  {int(np.asarray(s.nan).sum())} env(s) ended non-finite", flush=True)
     return {"per_env": j, "objective": float(j.mean()), "stderr": float(j.std(ddof=1) / np.sqrt(len(j))),
             "goal_error_cm": error_stats(dx, dy, da, cfg.distance)["goal_error_cm"],
-            "fall_pct": 100 * float(np.asarray(s.fell).mean())}
+            "fall_pct": 100 * float(np.asarray(s.fell).mean()), "nan_envs": int(np.asarray(s.nan).sum())}
 
 
 print(f"{cfg.held_out_batch} held-out terrains of {a.config} on {cfg.eval_physics}")
@@ -98,7 +101,6 @@ out = {"config": a.config, "sets": a.set, "held_out_batch": cfg.held_out_batch,
        "physics": get_physics(cfg.eval_physics).record(), "runs": []}
 for label, path, r in runs:
     steps = [e for e in r["log"] if "held_out" in e]
-    extra = {int(x) for x in a.steps.split(",") if x.strip()}
     if not a.all:
         steps = [steps[0]] + [e for e in steps if e["step"] != 0 and (e["step"] == r["final"]["step"]
                                                                        or e["step"] in extra)]
@@ -108,7 +110,7 @@ for label, path, r in runs:
         res = judge(e["params"])
         rows.append({"step": e["step"], "rollouts": e["rollouts"], "logged": e["held_out"]["objective"],
                      "objective": res["objective"], "stderr": res["stderr"],
-                     "goal_error_cm": res["goal_error_cm"], "fall_pct": res["fall_pct"],
+                     "goal_error_cm": res["goal_error_cm"], "fall_pct": res["fall_pct"], "nan_envs": res["nan_envs"],
                      "returned": e["step"] == r["final"]["step"], "per_env": res["per_env"].tolist()})
         d = res["per_env"] - judge(steps[0]["params"])["per_env"]  # the same terrains: a paired difference
         rows[-1].update(vs_start=float(d.mean()), vs_start_stderr=float(d.std(ddof=1) / np.sqrt(len(d))))
