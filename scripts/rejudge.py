@@ -34,9 +34,10 @@ from hexjax.experiments.tuning import parse_sets  # noqa: E402
 from hexjax.tune.config import load_tune_config  # noqa: E402
 
 cfg = load_tune_config(a.config, parse_sets(a.set), merge=True)
-if any(not x.strip().isdigit() for x in a.steps.split(",") if x.strip()):
+extra = [x.strip() for x in a.steps.split(",") if x.strip()]
+if not all(x.isdigit() for x in extra):
     raise SystemExit(f"--steps {a.steps!r}: give iterate numbers, e.g. 8,12")
-extra = {int(x) for x in a.steps.split(",") if x.strip()}
+extra = {int(x) for x in extra}
 if a.labels and len(a.labels.split(",")) != len(a.logs):
     raise SystemExit(f"--labels {a.labels!r}: {len(a.labels.split(','))} labels for {len(a.logs)} logs")
 runs = []
@@ -47,17 +48,14 @@ for i, path in enumerate(a.logs):
         r = json.load(f)
     runs.append((a.labels.split(",")[i] if a.labels else r["method"], path, r))
 
-import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from hexjax.sim.metrics import error_stats, travel_errors  # noqa: E402
 from hexjax.sim.physics import get_physics  # noqa: E402
-from hexjax.tune.objective import Problem, per_env_objective  # noqa: E402
-from hexjax.tune.space import to_unconstrained  # noqa: E402
+from hexjax.tune.objective import Problem, evaluate_held_out  # noqa: E402
+from hexjax.tune.space import with_values  # noqa: E402
 
 problem = Problem.build(cfg)
 model, fn = problem.eval_rollout()
-terr, keys = problem.eval_batch("held_out")
 
 
 seen = {}  # params already judged (runs from one start judge it once), by their JSON
@@ -85,15 +83,13 @@ def judge(params):
 
 
 def _judge(params):
-    u = {n: to_unconstrained(jnp.asarray(params[n], jnp.float32), b) for n, b in problem.space.bounds}
-    s = fn(model, problem.space.apply(u, problem.eval_params0), terr, keys)
-    j = np.asarray(per_env_objective(s, cfg.distance, cfg.objective))
-    dx, dy, da = (np.asarray(x) for x in travel_errors(s, cfg.distance))
-    if np.asarray(s.nan).any():
-        print(f"  {int(np.asarray(s.nan).sum())} env(s) ended non-finite", flush=True)
-    return {"per_env": j, "objective": float(j.mean()), "stderr": float(j.std(ddof=1) / np.sqrt(len(j))),
-            "goal_error_cm": error_stats(dx, dy, da, cfg.distance)["goal_error_cm"],
-            "fall_pct": 100 * float(np.asarray(s.fell).mean()), "nan_envs": int(np.asarray(s.nan).sum())}
+    u = problem.space.init(with_values(problem.eval_params0, params))  # a log's physical numbers, as in a run
+    res = evaluate_held_out(problem, u, fn, model, per_env=True)
+    if res["nan_envs"]:
+        print(f"  {res['nan_envs']} env(s) ended non-finite", flush=True)
+    j = res["per_env"]
+    return {**{k: res[k] for k in ("objective", "goal_error_cm", "fall_pct", "nan_envs")}, "per_env": j,
+            "stderr": float(j.std(ddof=1) / np.sqrt(len(j)))}
 
 
 print(f"{cfg.held_out_batch} held-out terrains of {a.config} on {cfg.eval_physics}")

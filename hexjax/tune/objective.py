@@ -293,8 +293,10 @@ def _hand_rules(cfg: TuneConfig, robot, smooth: bool):
     return c, p, cfg.horizon
 
 
-def evaluate_held_out(problem: Problem, u, fn=None, model=None, which: str = "held_out") -> Dict[str, float]:
-    """Hard-mode objective and goal errors of params u on the held-out (or validation) terrains."""
+def evaluate_held_out(problem: Problem, u, fn=None, model=None, which: str = "held_out",
+                      per_env: bool = False) -> Dict[str, Any]:
+    """Hard-mode objective and goal errors of params u on the held-out (or validation) terrains; with
+    `per_env`, each terrain's objective too (an array, for paired comparisons on the same terrains)."""
     if fn is None:
         model, fn = problem.eval_rollout()
     terr, keys = problem.eval_batch(which)
@@ -310,6 +312,8 @@ def evaluate_held_out(problem: Problem, u, fn=None, model=None, which: str = "he
                                     "goal_error_cm": error_stats(dx[sl], dy[sl], da[sl], d)["goal_error_cm"],
                                     "fall_pct": 100 * float(fell[sl].mean())}
                              for name, sl in zip(problem.cfg.terrains, family_slices(len(j), len(problem.specs)))}
+    if per_env:
+        out["per_env"] = j
     return out
 
 
