@@ -46,7 +46,7 @@ _EXPORTS = {
     "hexjax.world.presets": ["get_robot", "get_terrain", "luneckas2020", "yu2019", "chen2019"],
     "hexjax.world.terrain": ["Terrain", "TerrainSpec", "obstacle_circles", "pad_terrain", "sample"],
     "hexjax.sim.config": ["PhysicsConfig", "RolloutConfig", "SensorConfig"],
-    "hexjax.sim.physics": ["get_physics", "pick_engine"],
+    "hexjax.sim.physics": ["get_physics", "pick"],
     "hexjax.sim.mjcf": ["build_mjcf"],
     "hexjax.sim.model": ["Obs", "SimModel", "sim_model"],
     "hexjax.sim.step": ["Summary"],

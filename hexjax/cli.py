@@ -53,8 +53,8 @@ def _help(opt: Option) -> str:
     text = opt.help
     if opt.preset:
         text += f" (presets: {', '.join(preset_names(opt.preset))}; or a .yaml path)"
-    if opt.choices:
-        text += f" (one of: {', '.join(map(str, opt.choices))})"
+    if opt.choices:  # "" (a flag's "pick for me") is said by the help text, not listed
+        text += f" (one of: {', '.join(str(c) for c in opt.choices if c != '')})"
     if opt.bounds_text():
         text += f" ({opt.bounds_text()})"
     d = ",".join(map(str, opt.default)) if isinstance(opt.default, list) else opt.default

@@ -23,12 +23,15 @@ import numpy as np
 
 from hexjax.control.registry import make_controller
 from hexjax.sim.config import PhysicsConfig, RolloutConfig
-from hexjax.sim.physics import get_physics, traced_backend
+from hexjax.sim.engines import TRACES
+from hexjax.sim.physics import pick
 from hexjax.sim.mjcf import build_mjcf
 from hexjax.sim.rollout import rollout
 from hexjax.world.presets import get_robot, get_terrain
 from hexjax.world.robot import LEG_NAMES, RobotSpec
 from hexjax.world.terrain import sample
+
+NEEDS = frozenset({TRACES})  # the video replays the joint traces (the runner picks the engine once)
 
 # the controllers a video can show: those that walk with their default params (hexjax.control.registry)
 RENDERABLE = ("gait", "tactile", "cpg")
@@ -173,15 +176,14 @@ def render_walk(robot_name: str = "luneckas2020", terrain_name: str = "high-larg
         raise ValueError(f"seconds={seconds!r}: must be > 0")
     rb = get_robot(robot_name)
     tspec = get_terrain(terrain_name)
-    preset = get_physics(physics)
-    backend = traced_backend(preset, "joint traces for the video")
+    preset = pick(physics, needs=NEEDS)
     physics = preset.config(tspec)
     if controller not in RENDERABLE:
         raise ValueError(f"controller={controller!r}: choose one of {sorted(RENDERABLE)}")
     ctrl = make_controller(controller, rb)
     terrain = sample(tspec, jax.random.PRNGKey(seed), max(envs) + 1)
     s = rollout(rb, terrain, ctrl, ctrl.default_params(), seconds, jax.random.PRNGKey(seed + 1), physics=physics,
-                config=RolloutConfig(record=True), backend=backend)
+                config=RolloutConfig(record=True), engine=preset.engine.name)
     s = jax.device_get(s)
     fps = 1.0 / (ctrl.dt * every)
     written = []
@@ -195,7 +197,7 @@ def render_walk(robot_name: str = "luneckas2020", terrain_name: str = "high-larg
             written.append(still)
     return {"written": written, "frames_per_video": int(len(frames)), "fps": fps,
             "tactile_steps": np.asarray(s.tactile_steps)[envs].tolist(), "fell": np.asarray(s.fell)[envs].tolist(),
-            "physics": preset.record(backend)}
+            "physics": preset.record()}
 
 
 # The command (configs/commands/render.yaml) --------------------------------------------------------------------

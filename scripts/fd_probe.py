@@ -23,7 +23,7 @@ import numpy as np
 from hexjax.control.cpg import CPGController
 from hexjax.control.gait import GaitController
 from hexjax.sim.config import RolloutConfig, physics_for
-from hexjax.sim.physics import get_physics
+from hexjax.sim.physics import get_physics, pick
 from hexjax.sim.rollout import rollout_function
 from hexjax.tune.gradcheck import check, check_batch, tactile_check_setting, travel_objective
 from hexjax.tune.space import Bound, ParamSpace, make_space
@@ -80,7 +80,7 @@ if a.face:
 terr, keys = check_batch(spec, a.B)
 overrides = {k: v for k, v in (("iterations", a.iters), ("cone", a.cone)) if v}
 preset = get_physics(a.physics, **overrides)
-print(preset.header())
+print(pick(preset, "mjx").header())
 phys = physics_for(spec.kind, preset.config(spec))
 model, fn = rollout_function(robot, ctrl, a.window, physics=phys,
                              config=RolloutConfig(settle_time=a.settle, solver_grad=a.solver_grad))

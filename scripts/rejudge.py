@@ -50,7 +50,8 @@ for i, path in enumerate(a.logs):
 
 import numpy as np  # noqa: E402
 
-from hexjax.sim.physics import get_physics  # noqa: E402
+from hexjax.sim.engines import GRADIENTS  # noqa: E402
+from hexjax.sim.physics import get_physics, pick  # noqa: E402
 from hexjax.tune.objective import Problem, evaluate_held_out  # noqa: E402
 from hexjax.tune.space import with_values  # noqa: E402
 
@@ -63,7 +64,7 @@ if a.reuse:
     with open(a.reuse) as f:
         prev = json.load(f)
     if (prev["config"], prev["held_out_batch"], prev["physics"]) != (a.config, cfg.held_out_batch,
-                                                                      get_physics(cfg.eval_physics).record()):
+                                                                      pick(cfg.eval_physics, needs={GRADIENTS}).record()):
         raise SystemExit(f"--reuse {a.reuse}: judged {prev['config']} on {prev['held_out_batch']} terrains, not "
                          f"{a.config} on {cfg.held_out_batch}, or on other physics")
     for pr in prev["runs"]:
@@ -94,7 +95,7 @@ def _judge(params):
 
 print(f"{cfg.held_out_batch} held-out terrains of {a.config} on {cfg.eval_physics}")
 out = {"config": a.config, "sets": a.set, "held_out_batch": cfg.held_out_batch,
-       "physics": get_physics(cfg.eval_physics).record(), "runs": []}
+       "physics": pick(cfg.eval_physics, needs={GRADIENTS}).record(), "runs": []}
 for label, path, r in runs:
     steps = [e for e in r["log"] if "held_out" in e]
     if not a.all:

@@ -181,7 +181,7 @@ def _rss_gib() -> float:
 @pytest.fixture(autouse=True, scope="module")
 def _free_compiled_rollouts():
     """Each module's compiled rollouts are dropped after it. One process compiles dozens of MJX programs;
-    kept alive in `_compiled`'s cache and JAX's, they only grow the process (a full run once died with a
+    kept alive in `compiled_rollout`'s cache and JAX's, they only grow the process (a full run once died with a
     segfault inside XLA's compiler late in the run; the same test passed alone). A later module that needs
     the same program again loads it from the persistent compilation cache (`hexjax.cache`).
     JAX's own caches go too, but only once the process holds more than `_CLEAR_ABOVE_GIB`: they also hold the
@@ -195,7 +195,7 @@ def _free_compiled_rollouts():
     import sys
 
     if "hexjax.sim.rollout" in sys.modules:
-        sys.modules["hexjax.sim.rollout"]._compiled.cache_clear()
+        sys.modules["hexjax.sim.engines.mjx"].compiled_rollout.cache_clear()
     gc.collect()
     if _rss_gib() > _CLEAR_ABOVE_GIB:
         import jax

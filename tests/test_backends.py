@@ -52,9 +52,9 @@ class TestAgainstTheMjxWalk:
     (tests/conftest.py's scheduler)."""
 
     def test_mujoco_c_backend_walks_like_mjx(self, mjx_run):
-        out, st = rollout(ROBOT, TERRAIN, CTRL, CTRL.default_params(), SECONDS, jax.random.PRNGKey(1), backend="c",
+        out, st = rollout(ROBOT, TERRAIN, CTRL, CTRL.default_params(), SECONDS, jax.random.PRNGKey(1), engine="c",
                           nthread=2, stats=True, physics=PHYSICS)
-        assert st.backend == "c" and st.compile_s > 0 and st.env_steps == 6 * PHYSICS_STEPS
+        assert st.engine == "c" and st.compile_s > 0 and st.env_steps == 6 * PHYSICS_STEPS
         np.testing.assert_allclose(np.asarray(out.start_pose), np.asarray(mjx_run.start_pose), atol=5e-3)
         _agree(mjx_run, out)
 
@@ -62,7 +62,7 @@ class TestAgainstTheMjxWalk:
         _warp()
         from hexjax.sim.internals import warp_cpu
         recorded, replayed = warp_cpu.STATS["recorded"], warp_cpu.STATS["replayed"]
-        walk = lambda: rollout(ROBOT, TERRAIN, CTRL, CTRL.default_params(), SECONDS, jax.random.PRNGKey(1), backend="warp",
+        walk = lambda: rollout(ROBOT, TERRAIN, CTRL, CTRL.default_params(), SECONDS, jax.random.PRNGKey(1), engine="warp",
                                physics=PHYSICS)
         out = walk()
         _agree(mjx_run, out)
@@ -90,7 +90,7 @@ def test_mujoco_c_ground_plane_sits_at_the_terrains_ground_z():
     sits 5 cm lower over the lowered plane."""
     flat = sample(get_terrain("flat"), jax.random.PRNGKey(0), 2)
     terr = flat.replace(ground_z=np.array([0.0, -0.05], np.float32))
-    out = rollout(ROBOT, terr, CTRL, CTRL.default_params(), 1.0, jax.random.PRNGKey(1), backend="c", nthread=1,
+    out = rollout(ROBOT, terr, CTRL, CTRL.default_params(), 1.0, jax.random.PRNGKey(1), engine="c", nthread=1,
                   config=RolloutConfig(record=True))
     h = np.asarray(out.min_height)
     assert 0.03 < h[0] < 0.15 and abs(h[1] - h[0]) < 0.005, h
@@ -119,7 +119,7 @@ def test_warp_cpu_hessian_launch_gives_the_same_steps():
     from mujoco.mjx.third_party import mujoco_warp as mjw
 
     from hexjax.sim.internals import warp_cpu
-    sm = sim_model(ROBOT, PhysicsConfig(cone="elliptic"), impl="warp")  # the model and pool sizes hexjax's walks use
+    sm = sim_model(ROBOT, PhysicsConfig(cone="elliptic"), "warp")  # the model and pool sizes hexjax's walks use
     m = sm.mj_model
     d = mujoco.MjData(m)
     mujoco.mj_resetDataKeyframe(m, d, 0)
@@ -188,12 +188,12 @@ def test_contact_sensors_read_the_forces_mujoco_reports():
 
 def test_backend_bad_input_raises_before_tracing():
     p = CTRL.default_params()
-    with pytest.raises(ValueError, match="backend='gpu'"):
-        rollout(ROBOT, TERRAIN, CTRL, p, 1.0, jax.random.PRNGKey(0), backend="gpu")
-    with pytest.raises(ValueError, match="forward only"):
-        rollout(ROBOT, TERRAIN, CTRL, p, 1.0, jax.random.PRNGKey(0), backend="c",
+    with pytest.raises(ValueError, match="engine='gpu'"):
+        rollout(ROBOT, TERRAIN, CTRL, p, 1.0, jax.random.PRNGKey(0), engine="gpu")
+    with pytest.raises(ValueError, match="needs gradients, which MuJoCo C does not give"):
+        rollout(ROBOT, TERRAIN, CTRL, p, 1.0, jax.random.PRNGKey(0), engine="c",
                 config=RolloutConfig(solver_grad="unrolled"))
     with pytest.raises(ValueError, match="nthread"):
-        rollout(ROBOT, TERRAIN, CTRL, p, 1.0, jax.random.PRNGKey(0), backend="c", nthread=-1)
+        rollout(ROBOT, TERRAIN, CTRL, p, 1.0, jax.random.PRNGKey(0), engine="c", nthread=-1)
     with pytest.raises(ValueError, match="terrain_boxes"):
         build_mjcf(ROBOT, PhysicsConfig(), terrain_boxes=3)

@@ -13,7 +13,7 @@ import pytest
 from conftest import TEST_XLA_FLAGS
 
 SWEEP = ["robustness", "--controllers", "gait", "--terrain", "flat", "--axis", "friction=0.4,1.0", "--batch", "4",
-         "--distance", "0.05", "--per-env", "--backend", "mjx"]  # MJX: its envs shard over devices
+         "--distance", "0.05", "--per-env", "--engine", "mjx"]  # MJX: its envs shard over devices
 
 
 def _free_port() -> int:

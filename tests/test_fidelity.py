@@ -13,7 +13,7 @@ from hexjax.experiments import fidelity
 
 
 def _options(**kw):
-    o = dict(physics="validated", against="reference", backend="", refine=False, batch=64, controllers=["gait"],
+    o = dict(physics="validated", against="reference", engine="", refine=False, batch=64, controllers=["gait"],
              only=[], robot="luneckas2020", distance=0.25, seed=0, json="", png="", progress=False)
     o.update(kw)
     return types.SimpleNamespace(**o)
@@ -41,8 +41,8 @@ def test_validated_mjx_meets_the_reference_on_a_paired_matrix(tmp_path, default_
     with XLA's default settings (the suite's older fusion emitters slow MJX's elliptic-cone solve 3.4x)."""
     preset = {"friction_terrains": ["flat", "low-small"], "frictions": [0.2, 0.6], "controllers": {"gait": "all"}}
     res = _run_in_own_process(vars(_options()), preset, tmp_path / "fid.json", default_xla_env)
-    assert res["physics"]["name"] == "validated" and res["physics"]["backend"] == "mjx"
-    assert res["against"]["name"] == "reference" and res["against"]["backend"] == "c"
+    assert res["physics"]["name"] == "validated" and res["physics"]["engine"] == "mjx"
+    assert res["against"]["name"] == "reference" and res["against"]["engine"] == "c"
     rows = {r["cell"]: r for r in res["cells"]}
     assert sorted(rows) == ["flat mu=0.2", "flat mu=0.6", "low-small mu=0.2", "low-small mu=0.6"]
     for name, r in rows.items():
@@ -75,9 +75,10 @@ def test_bad_fidelity_options_fail_in_one_line():
 
 
 def test_refine_holds_the_reference_against_itself_at_half_the_step_and_twice_the_iterations():
-    a, b, backend = fidelity._presets(_options(refine=True))
-    assert b.name == "reference" and a.name == "reference-refined" and backend == "c"
+    a, b = fidelity._presets(_options(refine=True))
+    assert b.name == "reference" and a.name == "reference-refined" and a.engine.name == b.engine.name == "c"
+    a, b = a.settings, b.settings
     assert a.timestep == b.timestep / 2 and a.iterations == 2 * b.iterations
     assert a.ls_iterations == 2 * b.ls_iterations and a.tolerance == b.tolerance and a.cone == b.cone
-    a, b, backend = fidelity._presets(_options(backend="warp"))
-    assert (a.name, b.name, backend) == ("validated", "reference", "warp")
+    a, b = fidelity._presets(_options(engine="warp"))
+    assert (a.name, b.name, a.engine.name, a.settings_from) == ("validated", "reference", "warp", "validated")

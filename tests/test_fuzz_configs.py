@@ -106,7 +106,7 @@ FLAT = sample(get_terrain("flat"), jax.random.PRNGKey(0), 1)
 
 def _robot_run(robot):
     ctrl = GaitController(robot)
-    return rollout(robot, FLAT, ctrl, ctrl.default_params(), 0.1, jax.random.PRNGKey(1), backend="c", nthread=1,
+    return rollout(robot, FLAT, ctrl, ctrl.default_params(), 0.1, jax.random.PRNGKey(1), engine="c", nthread=1,
                    physics=PhysicsConfig(slots_per_leg=0, torso_slots=0), config=TINY)
 
 
@@ -114,7 +114,7 @@ def _terrain_run(spec):
     robot = get_robot("luneckas2020")
     ctrl = GaitController(robot)
     terr = sample(spec, jax.random.PRNGKey(2), 2)
-    return rollout(robot, terr, ctrl, ctrl.default_params(), 0.1, jax.random.PRNGKey(1), backend="c", nthread=1,
+    return rollout(robot, terr, ctrl, ctrl.default_params(), 0.1, jax.random.PRNGKey(1), engine="c", nthread=1,
                    config=TINY)
 
 
@@ -122,7 +122,7 @@ def _tune_run(cfg):
     problem = Problem.build(cfg)
     terr, _ = problem.eval_batch()
     terr = jax.tree_util.tree_map(lambda x: x[:1], terr)
-    return rollout(problem.robot, terr, problem.eval_ctrl, problem.eval_params0, 0.1, jax.random.PRNGKey(1), backend="c",
+    return rollout(problem.robot, terr, problem.eval_ctrl, problem.eval_params0, 0.1, jax.random.PRNGKey(1), engine="c",
                    nthread=1, physics=problem.physics(), config=TINY)
 
 

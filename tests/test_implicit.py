@@ -356,14 +356,14 @@ def test_unrolled_physics_steps_give_the_same_state(standing):
     """`RolloutConfig.unroll_substeps` traces a control step's physics steps one after another instead of as
     a `lax.scan`: the same state and power. (Reverse mode differentiates the same operations either way; a
     Jacobian check would add ~100 s of compile to the suite for what `lax.scan`'s unroll already guarantees.)"""
-    from hexjax.sim.step import physics
+    from hexjax.sim.step import physics, stop_derived
 
     m, d = standing
     w = jnp.asarray(np.random.RandomState(1).randn(m.nu).astype(np.float32))
 
     def f(unroll):
         def g(a):
-            out, power = physics(m, d.replace(ctrl=d.ctrl + a * 0.3 * w), 2, stop=True, unroll=unroll)
+            out, power = physics(m, d.replace(ctrl=d.ctrl + a * 0.3 * w), 2, detach=stop_derived, unroll=unroll)
             return jnp.concatenate([out.qpos, out.qvel, power])
         # kept on disk: as a plain jax.jit its persistent-cache key changed with what the worker ran before (two
         # compiles, 11 s, in one warm run of the suite)

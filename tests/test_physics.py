@@ -187,12 +187,15 @@ def test_standing_hexapod_feet_carry_its_weight(preset, engine):
 
 def test_the_three_presets_load_and_say_what_they_are():
     ref, val, fast = (get_physics(n) for n in ("reference", "validated", "fast"))
-    assert ref.backend == "c" and ref.iterations >= 100 and ref.tolerance <= 1e-10 and ref.cone == "elliptic"
-    assert val.backend == "mjx" and val.cone == "elliptic" and val.iterations > fast.iterations
+    assert ref.engine == "c" and ref.iterations >= 100 and ref.tolerance <= 1e-10 and ref.cone == "elliptic"
+    assert val.engine == "mjx" and val.cone == "elliptic" and val.iterations > fast.iterations
+    from hexjax.sim.physics import pick
     for p in (ref, val, fast):
-        rec = p.record()
-        assert rec["name"] == p.name and rec["backend"] == p.backend and rec["iterations"] == p.iterations
-        assert p.name in p.header()
+        run = pick(p, p.engine)  # the preset's own settings on its own engine
+        rec = run.record()
+        assert rec["name"] == p.name and rec["engine"] == p.engine and rec["iterations"] == p.iterations
+        assert rec["precision"] == ("float64" if p.engine == "c" else "float32")
+        assert p.name in run.header()
     # box slots: validated takes each terrain's own counts (stones: 3 per leg, 8 for the torso), fast keeps 2
     # for the torso; a batch that mixes terrains takes the most of each; flat ground has none
     from hexjax.sim.physics import shared_config
@@ -211,7 +214,7 @@ def test_the_three_presets_load_and_say_what_they_are():
     (dict(iterations=0), "physics.iterations=0"), (dict(iterations=10 ** 6), "physics.iterations=1000000"),
     (dict(tolerance=0.0), "physics.tolerance=0.0"), (dict(tolerance=float("nan")), "physics.tolerance=nan"),
     (dict(timestep=0.05), "physics.timestep=0.05"), (dict(cone="eliptic"), "physics.cone='eliptic'"),
-    (dict(backend="gpu"), "physics.backend='gpu'"), (dict(impratio=-1.0), "physics.impratio=-1.0"),
+    (dict(engine="gpu"), "physics.engine='gpu'"), (dict(impratio=-1.0), "physics.impratio=-1.0"),
     (dict(ls_iterations=1.5), "physics.ls_iterations=1.5"), (dict(slots_per_leg=-1), "physics.slots_per_leg=-1"),
     (dict(torso_slots=17), "physics.torso_slots=17"),
     (dict(iteratons=4), "physics.iteratons: unknown key (did you mean 'iterations'?)"),
@@ -226,6 +229,6 @@ def test_unknown_preset_and_bad_file_fail_in_one_line(tmp_path):
     with pytest.raises(ValueError, match="physics preset 'valdated' unknown .did you mean 'validated'"):
         get_physics("valdated")
     bad = tmp_path / "mine.yaml"
-    bad.write_text("backend: mjx\niterations: -3\n")
+    bad.write_text("engine: mjx\niterations: -3\n")
     with pytest.raises(ValueError, match=r"mine.yaml: physics.iterations=-3"):
         get_physics(str(bad))

@@ -125,14 +125,14 @@ def test_own_robot_and_terrain_files_work_in_the_cli(tmp_path, capsys):
     rp, tp = _write(tmp_path, "long_legs.yaml", robot), _write(tmp_path, "low_bumps.yaml", terrain)
     out = tmp_path / "ev.json"
     assert main(["evaluate", "--robot", rp, "--categories", f"flat,{tp}", "--batch", "2", "--distance", "0.3",
-                 "--backend", "c", "--json", str(out)]) == 0
+                 "--engine", "c", "--json", str(out)]) == 0
     res = json.loads(out.read_text())
     assert res["config"]["robot"] == "long_legs" and set(res["categories"]) == {"flat", tp}
     for stats in res["categories"].values():
         assert stats["nan"] == 0 and stats["advance_m"] > 0.15
     capsys.readouterr()
     bad = _write(tmp_path, "bad.yaml", {**robot, "kp": -1})
-    assert main(["evaluate", "--robot", bad, "--batch", "2", "--backend", "c"]) == 2
+    assert main(["evaluate", "--robot", bad, "--batch", "2", "--engine", "c"]) == 2
     err = capsys.readouterr().err
     assert "bad.yaml: robot.kp=-1.0: must be a finite number > 0" in err and err.count("\n") == 1
 

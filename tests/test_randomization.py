@@ -106,7 +106,7 @@ def perturbed_walks():
     # the same draws on the MuJoCo C and MJX-Warp backends (no traces there)
     other = {be: rollout(robot, terr, ctrl, ctrl.default_params(), dur, jax.random.PRNGKey(0), physics=phys,
                          config=RolloutConfig(yaw_noise=0.0, record=be == "warp"), perturbation=pert,
-                         backend=be, nthread=2 if be == "c" else None) for be in ("c", "warp")}
+                         engine=be, nthread=2 if be == "c" else None) for be in ("c", "warp")}
     return {name: i for i, name in enumerate(ROWS)}, run(), run(), other
 
 
@@ -202,9 +202,11 @@ def test_sweep_axes_envelope_and_interval():
     assert envelope([0.3], [(10, 50)], "friction")["level"] is None
     # MJX's unconverged solve (the fast preset) gets a note, converged or MuJoCo C does not (docs/physics.md)
     from hexjax.experiments.robustness import solver_note
-    assert "--physics validated" in solver_note("stones", "mjx", 2) and "stepping stones" in solver_note("stones", "mjx", 2)
-    assert "below friction 1.0" in solver_note("stairs", "warp", 2)
-    assert solver_note("stones", "mjx", 8) is None and solver_note("stones", "c", 2) is None
+    from hexjax.sim.engines import ENGINES
+    mjx, warp, c = ENGINES["mjx"], ENGINES["warp"], ENGINES["c"]
+    assert "--physics validated" in solver_note("stones", mjx, 2) and "stepping stones" in solver_note("stones", mjx, 2)
+    assert "below friction 1.0" in solver_note("stairs", warp, 2)
+    assert solver_note("stones", mjx, 8) is None and solver_note("stones", c, 2) is None
 
 
 def test_robustness_command_refuses_bad_input_before_any_rollout(capsys, tmp_path):

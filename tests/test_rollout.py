@@ -14,7 +14,9 @@ from hexjax.sim.compiled import Compiled
 from hexjax.sim.config import PhysicsConfig, RolloutConfig, SensorConfig
 from hexjax.sim.internals.contacts import contact_geoms
 from hexjax.sim.model import SimModel, mjx
-from hexjax.sim.rollout import _compiled, make_mesh, rollout
+from hexjax.sim.engines import get_engine
+from hexjax.sim.engines.mjx import compiled_rollout
+from hexjax.sim.rollout import make_mesh, rollout
 from hexjax.sim.step import control_steps
 from hexjax.world.presets import get_terrain, luneckas2020
 from hexjax.world.terrain import sample
@@ -91,15 +93,15 @@ def test_sharded_rollout_matches_unsharded():
     np.testing.assert_allclose(np.asarray(a.end_pose), np.asarray(b.end_pose), atol=1e-4)
     # each device steps its own envs: no collective in the program (automatic partitioning of the vmapped
     # rollout all-reduced the solver's stopping flag over the devices in every Newton iteration)
-    _, fn = _compiled(spec, FLAT, SensorConfig(), c, RolloutConfig(), control_steps(1.0, c.dt), False, "jax", False,
-                      mesh)
+    _, fn = compiled_rollout(get_engine("mjx"), spec, FLAT, SensorConfig(), c, RolloutConfig(), control_steps(1.0, c.dt),
+                             False, False, mesh)
     (exe,) = fn.executables.values()
     hlo = exe.as_text()
     assert "while" in hlo and not re.search(r"\b(all-reduce|all-gather|collective-permute|all-to-all)", hlo)
     # kept on disk as a one-device program is: a new `Compiled`, as in a later process, loads it instead of
     # tracing it (the sharded program is partitioned by Shardy, which can call an exported program back)
     if cache_dir() is not None:
-        _compiled.cache_clear()
+        compiled_rollout.cache_clear()
         again, st = rollout(spec, terr, c, p, 1.0, jax.random.PRNGKey(5), physics=FLAT, mesh=mesh, stats=True)
         assert st.compiled == "disk"
         np.testing.assert_array_equal(np.asarray(again.end_pose), np.asarray(b.end_pose))

@@ -76,7 +76,8 @@ def test_the_mjx_and_c_backends_run_one_controller_phase_and_one_summarise(monke
     from hexjax.control.registry import make_controller
     from hexjax.sim import rollout as rollout_module
     from hexjax.sim import step
-    from hexjax.sim.backends import mujoco_c
+    from hexjax.sim.engines import c as mujoco_c
+    from hexjax.sim.engines import mjx as mjx_engine
     from hexjax.world.presets import get_robot, get_terrain
     from hexjax.world.terrain import sample
 
@@ -92,7 +93,7 @@ def test_the_mjx_and_c_backends_run_one_controller_phase_and_one_summarise(monke
     def marked(acc, qpos_end, final_state, **traces):
         return summarise(dict(acc, energy=jnp.full_like(acc["energy"], -7.0)), qpos_end, final_state, **traces)
 
-    caches = (rollout_module._compiled, mujoco_c._controller_fns)
+    caches = (mjx_engine.compiled_rollout, mujoco_c._controller_fns)
     # no kept programs: one loaded from disk is not traced (so calls neither wrapper), and one kept from here
     # would hand the -7 J mark to every later run of this setting, as its key names only the source files
     monkeypatch.setenv(cache.ENV, "off")
@@ -104,7 +105,7 @@ def test_the_mjx_and_c_backends_run_one_controller_phase_and_one_summarise(monke
                 c.cache_clear()
             phase_calls.clear()
             s = rollout_module.rollout(robot, terrain, ctrl, ctrl.default_params(), 0.1, jax.random.PRNGKey(1),
-                                       backend=backend, nthread=1)
+                                       engine=backend, nthread=1)
             assert phase_calls, backend
             assert np.all(np.asarray(s.energy) == -7.0), (backend, s.energy)
             assert np.all(np.isfinite(np.asarray(s.end_pose))), backend

@@ -265,9 +265,9 @@ def test_families_walkable_at_zero_and_harder_with_difficulty(tmp_path, default_
     assert r.returncode == 0, r.stderr[-2000:]
     assert f"gait x {len(FAMILIES) * len(LEVELS) * n} envs" in r.stderr  # its progress bar over the walk
     res = json.loads(out.read_text())
-    from hexjax.sim.physics import pick_engine
+    from hexjax.sim.physics import pick
     assert res["physics"]["name"] == "validated"
-    assert res["physics"]["engine"]["backend"] == res["config"]["physics_backend"] == pick_engine("validated").backend
+    assert res["physics"]["engine"] == res["config"]["engine"] == pick("validated").engine.name
     rows = {(row["family"], row["difficulty"]): row for row in res["rows"]}
     for f in FAMILIES:
         fam = [rows[(f, d)] for d in LEVELS]

@@ -12,7 +12,7 @@ from hexjax.sim.compiled import Compiled, arrays_digest
 from hexjax.sim.config import RolloutConfig, physics_for
 from hexjax.sim.model import sim_model
 from hexjax.sim.rollout import rollout_function
-from hexjax.sim.step import physics
+from hexjax.sim.step import physics, stop_derived
 from hexjax.sim.windows import windowed_value_and_grad
 from hexjax.tune.gradcheck import check_batch, tactile_check_setting
 from hexjax.world.presets import get_terrain, luneckas2020
@@ -93,19 +93,19 @@ def test_a_kept_solution_replaces_the_solve():
     there, so the 1e-9 bound still tells a kept solution from a wrong one."""
     robot = luneckas2020()
     phys = physics_for("flat")
-    sm = sim_model(robot, phys, "jax")
+    sm = sim_model(robot, phys, "mjx")
     m = sm.mjx_model
     d0 = sm.init_data(jnp.zeros(3))
     d0 = d0.replace(qpos=d0.qpos.at[2].add(-0.005))  # the feet 5 mm into the ground: contact forces push back
 
     def keep(d):
         with implicit.implicit_solver(), implicit.solutions() as channel:
-            d, _ = physics(m, d, 4, stop=True)
+            d, _ = physics(m, d, 4, detach=stop_derived)
         return d.qpos, channel["kept"]
 
     def given(d, solved):
         with implicit.implicit_solver(), implicit.solutions(solved):
-            d, _ = physics(m, d, 4, stop=True)
+            d, _ = physics(m, d, 4, detach=stop_derived)
         return d.qpos
 
     # kept on disk: as plain `jax.jit`s their persistent-cache keys changed with what the worker had traced before

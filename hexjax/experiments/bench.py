@@ -18,7 +18,9 @@ from hexjax.sim.config import PhysicsConfig, RolloutConfig
 from hexjax.sim.physics import get_physics, timed_settings
 from hexjax.sim.mjcf import compile_mjcf
 from hexjax.sim.model import batch_model, sim_model
-from hexjax.sim.rollout import BACKENDS, make_mesh, rollout
+from hexjax.sim.engines import MESH, NAMES, get_engine, host_cores
+from hexjax.sim.engines.warp import overflow_counts, overflow_line
+from hexjax.sim.rollout import make_mesh, rollout
 from hexjax.world.presets import get_robot, get_terrain
 from hexjax.world.terrain import sample
 
@@ -53,15 +55,15 @@ def mujoco_c_steps_per_s(robot: str, terrain: str, physics: PhysicsConfig, secon
 def bench(robot: str = "luneckas2020", batches: Sequence[int] = (16, 64, 256), sim_seconds: float = 2.0,
           terrains: Sequence[str] = ("flat", "high-large"), gait: str = "tripod",
           physics: Sequence = ("validated",), repeats: int = 2, progress: bool = True,
-          controller: str = "gait", backend: str = "mjx", nthread: int = 0, devices: int = 1) -> Dict:
+          controller: str = "gait", engine: str = "mjx", nthread: int = 0, devices: int = 1) -> Dict:
     """Times `rollout` at each batch size on each terrain and physics preset. env-steps = envs x physics steps.
 
     physics: physics presets (names, .yaml paths or `PhysicsPreset`s), each timed on every row; every row names
     its preset.
 
-    backend: a comma list of rollout backends ('mjx', 'warp', 'c'; see `hexjax.sim.rollout.rollout`), each
+    engine: a comma list of engines ('mjx', 'warp', 'c'; `hexjax.sim.engines`), each
     timed on the same terrains, batches and controllers; nthread: MuJoCo C threads (0: all cores).
-    devices: shard each batch over this many of the visible devices (backend 'mjx'; the batch is the total,
+    devices: shard each batch over this many of the visible devices (an engine with a device mesh: mjx; the batch is the total,
     so 2 devices at B = 65,536 compare with 1 device at B = 32,768 for scaling).
     Each timed call is the whole rollout (model setup, controller, sensors, physics, summary); its first call
     (compile, and for 'c' the per-env model copies) is reported apart as compile_s / first_call_s.
@@ -82,14 +84,16 @@ def bench(robot: str = "luneckas2020", batches: Sequence[int] = (16, 64, 256), s
     bad = [n for n in names if n not in CONTROLLERS]
     if bad or not names:
         raise ValueError(f"controller={controller!r}: a comma list of {', '.join(map(repr, CONTROLLERS))} (or 'both')")
-    backends = backend.split(",")
-    bad = [x for x in backends if x not in BACKENDS]
-    if bad or not backends:
-        raise ValueError(f"backend={backend!r}: a comma list of {BACKENDS}")
+    engines = engine.split(",")
+    bad = [x for x in engines if x not in NAMES]
+    if bad or not engines:
+        raise ValueError(f"engine={engine!r}: a comma list of {', '.join(NAMES)}")
     if not isinstance(devices, int) or not 1 <= devices <= len(jax.devices()):
         raise ValueError(f"devices={devices!r}: must be between 1 and the {len(jax.devices())} visible device(s)")
-    if devices > 1 and backends != ["mjx"]:
-        raise ValueError(f"devices={devices}: sharding over devices needs backend='mjx', got {backend!r}")
+    lacking = [x for x in engines if get_engine(x).lacks({MESH})]
+    if devices > 1 and lacking:
+        raise ValueError(f"devices={devices}: sharding over devices needs an engine with a device mesh; {lacking[0]} "
+                         "has none")
     for b in batches:
         if b % devices:
             raise ValueError(f"batches entry {b}: must be a multiple of devices={devices}")
@@ -106,16 +110,16 @@ def bench(robot: str = "luneckas2020", batches: Sequence[int] = (16, 64, 256), s
     cfg = RolloutConfig()
     steps = {n: int(round((sim_seconds + cfg.settle_time) / p.timestep)) for n, p in presets.items()}
     rows = []
-    jobs = [(t, b, c, be, pn) for pn in presets for be in backends for t in terrains for b in batches for c in ctrls]
+    jobs = [(t, b, c, be, pn) for pn in presets for be in engines for t in terrains for b in batches for c in ctrls]
     for tname, b, cname, be, pname in tqdm(jobs, desc="bench", disable=not progress):
         ctrl = ctrls[cname]
         params = ctrl.default_params()
         tspec = get_terrain(tname)
         terr = sample(tspec, jax.random.PRNGKey(0), b)
-        settings, settings_name, certified = timed_settings(presets[pname], be)
-        phys = settings.config(tspec)
+        timed = timed_settings(presets[pname], be)
+        phys = timed.config(tspec)
         n_phys = steps[pname]
-        kw = dict(physics=phys, config=cfg, backend=be, nthread=nthread or None, mesh=mesh)
+        kw = dict(physics=phys, config=cfg, engine=be, nthread=nthread or None, mesh=mesh)
         out, st = rollout(spec, terr, ctrl, params, sim_seconds, jax.random.PRNGKey(1), stats=True, **kw)
         first, compile_s, compiled = st.wall_s, st.compile_s, st.compiled
         best = first if repeats == 0 else np.inf  # repeats=0: the first call (with its compile) is the timing
@@ -124,14 +128,16 @@ def bench(robot: str = "luneckas2020", batches: Sequence[int] = (16, 64, 256), s
             out = rollout(spec, terr, ctrl, params, sim_seconds, jax.random.PRNGKey(2 + r), **kw)
             jax.block_until_ready(out.end_pose)
             best = min(best, time.perf_counter() - t0)
-        rows.append(dict(terrain=tname, batch=b, controller=cname, backend=be, physics=pname,
-                         settings=settings_name, certified=certified, iterations=phys.iterations,
+        rows.append(dict(terrain=tname, batch=b, controller=cname, engine=be, physics=pname,
+                         settings=timed.settings_from, certified=timed.certified, iterations=phys.iterations,
                          cone=phys.cone, pairs=sim_model(spec, phys).n_pairs,
                          compile_s=round(compile_s, 2), compiled=compiled, first_call_s=round(first, 2),
                          repeats=repeats,
                          run_s=round(best, 4), env_steps_per_s=round(b * n_phys / best, 1),
                          nan=int(np.asarray(out.nan).sum()), fell=int(np.asarray(out.fell).sum()),
                          tactile_steps=int(np.asarray(out.tactile_steps).sum()),
+                         tactile_envs=int(np.count_nonzero(np.asarray(out.tactile_steps).sum(-1))),
+                         overflow=overflow_counts(out.overflow, phys),
                          mean_travel_x=round(float(np.mean(np.asarray(out.travel)[:, 0])), 4)))
         if progress:
             tqdm.write(f"{pname} {be} {tname} B={b} {cname}: compile {compile_s:.1f} s, {rows[-1]['env_steps_per_s']:.0f} env-steps/s, "
@@ -141,11 +147,11 @@ def bench(robot: str = "luneckas2020", batches: Sequence[int] = (16, 64, 256), s
     for r in rows:
         r["mujoco_c_1thread_steps_per_s"] = round(ref[r["terrain"], r["physics"]], 1)
         r["ratio_vs_mujoco_c_1thread"] = round(r["env_steps_per_s"] / ref[r["terrain"], r["physics"]], 3)
-    rate = {(r["terrain"], r["batch"], r["controller"], r["backend"], r["physics"]): r["env_steps_per_s"] for r in rows}
+    rate = {(r["terrain"], r["batch"], r["controller"], r["engine"], r["physics"]): r["env_steps_per_s"] for r in rows}
     if "gait" in ctrls:
         for r in rows:
             if r["controller"] != "gait":
-                r["overhead_vs_gait"] = round(rate[(r["terrain"], r["batch"], "gait", r["backend"], r["physics"])]
+                r["overhead_vs_gait"] = round(rate[(r["terrain"], r["batch"], "gait", r["engine"], r["physics"])]
                                               / r["env_steps_per_s"] - 1.0, 3)
     if "perceive" in ctrls:
         rays = ctrls["perceive"].sensor.n_rays
@@ -154,12 +160,13 @@ def bench(robot: str = "luneckas2020", batches: Sequence[int] = (16, 64, 256), s
             if r["controller"] == "perceive":
                 r["rays_per_s_per_env"] = round(rays * scans / r["run_s"], 1)
                 if "avoid" in ctrls:
-                    r["perception_overhead"] = round(rate[(r["terrain"], r["batch"], "avoid", r["backend"], r["physics"])]
+                    r["perception_overhead"] = round(rate[(r["terrain"], r["batch"], "avoid", r["engine"], r["physics"])]
                                                      / r["env_steps_per_s"] - 1.0, 3)
     dev = jax.devices()[0]
-    return dict(robot=robot, gait=gait, controller=controller, backends=backend, nthread=nthread or os.cpu_count(),
+    return dict(robot=robot, gait=gait, controller=controller, engines=engine, nthread=nthread or host_cores(),
                 sim_seconds=sim_seconds, physics_steps_per_env=steps,
-                physics=[p.record() for p in presets.values()], backend=jax.default_backend(),
+                physics=[timed_settings(p, e).record() for p in presets.values() for e in engines],
+                backend=jax.default_backend(),
                 device=f"{dev.platform}:{getattr(dev, 'device_kind', '')}", n_devices=len(jax.devices()),
                 devices_used=devices,
                 host=platform.node(), cpu_count=os.cpu_count(), jax=jax.__version__,
@@ -167,15 +174,21 @@ def bench(robot: str = "luneckas2020", batches: Sequence[int] = (16, 64, 256), s
 
 
 def format_bench(res: Dict) -> str:
-    head = (f"{'physics':<10} {'backend':<7} {'terrain':<11} {'ctrl':<7} {'pairs':>5} {'batch':>7} {'compile s':>9} {'env-steps/s':>12} "
-            f"{'MuJoCo C 1thr':>13} {'ratio':>6} {'vs gait':>8}")
+    head = (f"{'physics':<10} {'engine':<7} {'terrain':<11} {'ctrl':<7} {'pairs':>5} {'batch':>7} {'compile s':>9} {'env-steps/s':>12} "
+            f"{'MuJoCo C 1thr':>13} {'ratio':>6} {'vs gait':>8} {'tactile':>8}")
     lines = [f"{res['device']} ({res['backend']}, {res['n_devices']} device(s), {res.get('devices_used', 1)} used), {res['sim_seconds']} s simulated, "
              f"robot {res['robot']}", head]
     for r in res["rows"]:
         extra = f"{100 * r['overhead_vs_gait']:+7.1f}%" if "overhead_vs_gait" in r else ""
-        lines.append(f"{r.get('physics', ''):<10} {r.get('backend', 'mjx'):<7} {r['terrain']:<11} {r.get('controller', 'gait'):<7} {r['pairs']:5d} {r['batch']:7d} "
+        lines.append(f"{r.get('physics', ''):<10} {r.get('engine', r.get('backend', 'mjx')):<7} {r['terrain']:<11} "
+                     f"{r.get('controller', 'gait'):<7} {r['pairs']:5d} {r['batch']:7d} "
                      f"{r['compile_s']:9.1f} {r['env_steps_per_s']:12.0f} "
-                     f"{r['mujoco_c_1thread_steps_per_s']:13.0f} {r['ratio_vs_mujoco_c_1thread']:6.2f} {extra:>8}")
+                     f"{r['mujoco_c_1thread_steps_per_s']:13.0f} {r['ratio_vs_mujoco_c_1thread']:6.2f} {extra:>8} "
+                     f"{r.get('tactile_steps', 0):8d}")
+    lines.append("tactile: control steps with a tactile pad on, summed over envs and legs (the feet met obstacles)")
+    for r in res["rows"]:
+        if r.get("overflow"):
+            lines.append(f"{r.get('engine')} B={r['batch']}: " + overflow_line(r["overflow"]))
     for r in res["rows"]:
         if "rays_per_s_per_env" in r:
             cost = f", perception costs {100 * r['perception_overhead']:+.1f} % against avoid" \
@@ -186,7 +199,7 @@ def format_bench(res: Dict) -> str:
 
 
 # The command (configs/commands/bench.yaml) ---------------------------------------------------------------------
-FORWARD_ONLY = ("robot", "seconds", "terrains", "controller", "backend", "nthread", "devices", "physics")
+FORWARD_ONLY = ("robot", "seconds", "terrains", "controller", "engine", "nthread", "devices", "physics")
 GRAD_ONLY = ("tune", "solver_grad", "backward", "unroll_substeps")
 
 
@@ -200,7 +213,7 @@ def run(o, entry) -> Dict:
         return bench_grad(tune=o.tune, batches=o.batches, solver_grads=o.solver_grad, repeats=o.repeats,
                           unroll_substeps=o.unroll_substeps, backwards=o.backward)
     return bench(robot=o.robot, batches=o.batches, sim_seconds=o.seconds, terrains=o.terrains,
-                 controller=",".join(o.controller), backend=",".join(o.backend), nthread=o.nthread,
+                 controller=",".join(o.controller), engine=",".join(o.engine), nthread=o.nthread,
                  devices=o.devices, repeats=o.repeats, physics=tuple(o.physics))
 
 

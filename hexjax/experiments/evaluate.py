@@ -13,8 +13,8 @@ from tqdm.auto import tqdm
 from hexjax.control.registry import make_controller
 from hexjax.sim.metrics import batch_stats, goal_errors
 from hexjax.sim.config import RolloutConfig
-from hexjax.sim.model import sim_model
-from hexjax.sim.physics import PhysicsPreset, pick_engine, shared_config
+from hexjax.sim.engines import MESH
+from hexjax.sim.physics import pick, shared_config
 from hexjax.sim.rollout import rollout
 from hexjax.world.presets import get_robot, get_terrain
 from hexjax.world.terrain import LUNECKAS2020_CATEGORIES, pad_terrain, sample
@@ -24,17 +24,15 @@ DEFAULT_CATEGORIES = ("flat",) + LUNECKAS2020_CATEGORIES
 
 def evaluate(robot: str = "luneckas2020", gait: str = "tripod", distance: float = 1.0, batch: int = 16,
              seed: int = 0, categories: Sequence[str] = DEFAULT_CATEGORIES, step_height: float = 0.03,
-             physics: str | PhysicsPreset = "validated", progress: bool = True, mesh=None,
-             backend: str | None = None) -> Dict:
+             physics="validated", progress: bool = True, mesh=None, engine: str | None = None) -> Dict:
     """Walk `distance` m with the open-loop Luneckas 2020 gait on each category; returns
     {"config": ..., "categories": {name: batch_stats + env_steps_per_s}, "physics": the preset's record}.
-    robot, categories: preset names or YAML paths; physics: a physics preset (name, .yaml path or
-    `PhysicsPreset`); backend: the physics engine ('mjx', 'warp', 'c'; default: the fastest engine certified for
-    the preset on this host, `hexjax.sim.physics.pick_engine`)."""
-    engine = pick_engine(physics, backend)  # the fastest certified engine on this host, or the one asked for
-    preset, backend = engine.preset, engine.backend
-    if progress:
-        print(engine.header(), flush=True)
+    robot, categories: preset names or YAML paths; physics: the physics chosen for the command
+    (`hexjax.sim.physics.pick`: a `Physics`), or a physics preset (name, .yaml path or `PhysicsPreset`), run on
+    `engine` ('mjx', 'warp', 'c'; default: the fastest engine certified for the preset on this host)."""
+    chosen = pick(physics, engine, needs={MESH} if mesh is not None else ())
+    if progress and chosen is not physics:  # a command's runner printed it already
+        print(chosen.header(), flush=True)
     if not (isinstance(distance, (int, float)) and 0 < distance <= 20):
         raise ValueError(f"distance={distance!r}: must be in (0, 20] m")
     if not isinstance(batch, int) or batch < 1:
@@ -45,9 +43,8 @@ def evaluate(robot: str = "luneckas2020", gait: str = "tripod", distance: float 
     params = ctrl.default_params()
     ctrl, duration = ctrl.for_distance(distance, params)
     m = max(s.max_boxes for s in specs.values())
-    physics = shared_config(preset, specs.values())  # one program for every category
-    if backend != "c":  # build the MJX model up front so no category's timing includes it
-        sim_model(spec, physics, "warp" if backend == "warp" else "jax")
+    physics = shared_config(chosen, specs.values())  # one program for every category
+    chosen.engine.prepare(spec, physics)  # so that no category's timing includes it
     key = jax.random.PRNGKey(seed)
     results = {}
     bar = tqdm(list(specs.items()), desc=f"evaluate {gait} {distance:g} m", disable=not progress, unit="cat")
@@ -56,7 +53,7 @@ def evaluate(robot: str = "luneckas2020", gait: str = "tripod", distance: float 
         k_t, k_r = jax.random.split(jax.random.fold_in(key, i))
         terr = pad_terrain(sample(tspec, k_t, batch), m)
         summ, st = rollout(spec, terr, ctrl, params, duration, k_r, physics=physics, config=RolloutConfig(), mesh=mesh,
-                           backend=backend, stats=True)
+                           engine=chosen.engine.name, stats=True)
         stats = batch_stats(summ, goal_errors(summ, distance), distance)
         stats.update(wall_s=st.run_s, compile_s=st.compile_s, env_steps_per_s=st.env_steps_per_s)
         results[name] = stats
@@ -64,8 +61,8 @@ def evaluate(robot: str = "luneckas2020", gait: str = "tripod", distance: float 
                            gait_cycles=ctrl.n_cycles, duration_s=duration, step_height_m=step_height,
                            step_length_m=float(params.step_length), swing_time_s=float(params.swing_time),
                            slots_per_leg=physics.slots_per_leg, torso_slots=physics.torso_slots,
-                           backend=jax.default_backend(), devices=len(jax.devices()), physics_backend=backend),
-            "categories": results, "physics": engine.record()}
+                           backend=jax.default_backend(), devices=len(jax.devices()), engine=chosen.engine.name),
+            "categories": results, "physics": chosen.record()}
 
 
 def format_table(result: Dict) -> str:
@@ -83,13 +80,13 @@ def format_table(result: Dict) -> str:
 def run(o, entry) -> Dict:
     return evaluate(robot=o.robot, gait=o.gait, distance=o.distance, batch=o.batch, seed=o.seed,
                     categories=tuple(o.categories), step_height=o.step_height, physics=o.physics,
-                    backend=o.backend or None)
+                    engine=o.engine or None)
 
 
 def report(res: Dict) -> str:
     c = res["config"]
     compile_s = sum(s["compile_s"] for s in res["categories"].values())
-    return (f"\n{res['physics']['name']} physics ({c['physics_backend']}); {c['robot']} {c['gait']} gait, {c['distance_m']:g} m ({c['gait_cycles']} cycles, "
+    return (f"\n{res['physics']['name']} physics ({c['engine']}); {c['robot']} {c['gait']} gait, {c['distance_m']:g} m ({c['gait_cycles']} cycles, "
             f"{c['duration_s']:.1f} s), {c['batch']} envs per category, seed {c['seed']}, no tactile method\n"
             + format_table(res) + f"\ncompile {compile_s:.1f} s (one program for every category)")
 

@@ -25,11 +25,11 @@ WALK_KEY = 9  # the walk's key; terrain i of the (family, difficulty) grid is sa
 
 def walk_families(controller: str, families: Sequence[str], levels: Sequence[float], batch: int, distance: float,
                   start_x: float, physics: PhysicsConfig, robot: str = "luneckas2020", progress: bool = True,
-                  backend: str = "mjx"):
+                  engine: str = "mjx"):
     """`batch` envs of every (family, difficulty), in that order, walking `distance` m with the features from
     `start_x` on, in one rollout. The physics takes the most box slots any family needs (`shared_config`).
     The tactile method's overcome height (Luneckas 2020 Eq. 7's h_k) is set per env from its stairs' or boxes'
-    height. A bar counts the rollout's control steps (`progress`). backend: the engine (`rollout`'s). Returns
+    height. A bar counts the rollout's control steps (`progress`). engine: the engine (`rollout`'s). Returns
     (summary, goal errors, rollout stats, the physics run)."""
     from hexjax.control.tactile import overcome_height
     rob = get_robot(robot)
@@ -49,25 +49,23 @@ def walk_families(controller: str, families: Sequence[str], levels: Sequence[flo
         params = params.replace(overcome_height=np.repeat(overcome_height(h), batch).astype(np.float32))
     with step_bar(f"{controller} x {len(specs) * batch} envs", ctrl.dt, duration, every=10, enabled=progress) as cfg:
         s, st = rollout(rob, terr, ctrl, params, duration, jax.random.PRNGKey(WALK_KEY), physics=phys, stats=True,
-                        params_batched=per_env, config=cfg, backend=backend)
+                        params_batched=per_env, config=cfg, engine=engine)
     return s, goal_errors(s, distance), st, phys
 
 
 # The command (configs/commands/families.yaml) ------------------------------------------------------------------
 def run(o, entry) -> Dict:
-    from hexjax.sim.physics import pick_engine
-    engine = pick_engine(o.physics, o.backend or None)  # the fastest certified on this host, or --backend's
-    preset = engine.preset
-    print(engine.header(), flush=True)
+    from hexjax.sim.physics import pick
+    physics = pick(o.physics, o.engine or None)  # as the runner chose it (the fastest certified on this host)
     fams, levels = list(o.families), [float(v) for v in o.levels]
     out: Dict = {"config": dict(batch=o.batch, levels=levels, families=fams, controllers=list(o.controllers),
                                 distance=o.distance, start_x=o.start_x, robot="luneckas2020",
-                                backend=jax.default_backend(), physics_backend=engine.backend), "rows": [],
-           "timing": {}, "physics": engine.record()}
+                                backend=jax.default_backend(), engine=physics.engine.name), "rows": [],
+           "timing": {}, "physics": physics.record()}
     for cname in o.controllers:
         t0 = time.perf_counter()
-        s, e, st, phys = walk_families(cname, fams, levels, o.batch, o.distance, o.start_x, preset,
-                                       backend=engine.backend)
+        s, e, st, phys = walk_families(cname, fams, levels, o.batch, o.distance, o.start_x, physics,
+                                       engine=physics.engine.name)
         out["config"].update(slots_per_leg=phys.slots_per_leg, torso_slots=phys.torso_slots)
         shape = (len(fams), len(levels), o.batch)
         ok = np.asarray(e.success).reshape(shape)

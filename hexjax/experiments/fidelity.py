@@ -16,7 +16,9 @@ give the torso's divergence after 0.5, 1 and 2 s.
 
 All cells of one controller that share a physics configuration (terrain slot count) run as the envs of one
 rollout call: terrains padded to one box count, friction and payload as per-env draws. Finished rollouts are kept
-beside the JSON (`<json>.partial.json`); a rerun of the same command resumes after them.
+beside the JSON (`<json>.partial.json`); a rerun of the same command resumes after them. Each finished rollout is
+also kept in the cache (`<cache>/fidelity/`, by the matrix's digest and the physics' own key), so a later run
+against the same reference (another engine or settings under test) runs only its own side.
 """
 
 from __future__ import annotations
@@ -91,21 +93,62 @@ def _digest(o, spec: Dict) -> str:
 def _physics_key(record: Dict) -> str:
     """A kept run's physics: every setting and the engine, not the preset's name (a copy under another name
     reuses it)."""
-    blob = {k: v for k, v in record.items() if k != "name"}
+    blob = {k: v for k, v in record.items() if k not in ("name", "picked", "certified", "certificates")}
     return hashlib.sha256(json.dumps(blob, sort_keys=True, default=str).encode()).hexdigest()[:12]
 
 
+def _kept_dir(digest: str):
+    from hexjax.cache import cache_dir
+    d = cache_dir()
+    return None if d is None else d / "fidelity" / digest
+
+
+def _kept_runs(digest: str, keys: List[str], have: Dict) -> Dict:
+    """The finished rollouts of `keys` ("label|physics key") kept in the cache for this matrix (`digest`) and not
+    in `have`, saying how many were reused."""
+    d = _kept_dir(digest)
+    out = {}
+    for k in keys:
+        f = None if d is None else d / (hashlib.sha256(k.encode()).hexdigest()[:16] + ".json")
+        if k not in have and f is not None and f.is_file():
+            try:
+                out[k] = json.loads(f.read_text())
+            except (OSError, ValueError):
+                continue
+    if out:
+        print(f"fidelity: reused {len(out)} finished rollouts kept in {d}", flush=True)
+    return out
+
+
+def _keep_run(digest: str, key: str, run) -> None:
+    """Keep one finished rollout in the cache (whole or not at all), for any later run of the same matrix."""
+    d = _kept_dir(digest)
+    if d is None:
+        return
+    d.mkdir(parents=True, exist_ok=True)
+    f = d / (hashlib.sha256(key.encode()).hexdigest()[:16] + ".json")
+    tmp = f.with_suffix(".tmp")
+    tmp.write_text(json.dumps(run))
+    tmp.replace(f)
+
+
 def _presets(o):
-    """(A, B, backend of A): the preset under test and the one it is held against. With --refine, B is
-    --against itself and A the same with its timestep halved and its iterations doubled (is it converged?)."""
-    from hexjax.sim.physics import get_physics
+    """(A, B): the physics under test and the physics it is held against (`Physics`, each a preset's own
+    settings on an engine). With --refine, B is --against itself and A the same with its timestep halved and its
+    iterations doubled (is it converged?); else A is --physics on --engine (default: the preset's own)."""
+    from hexjax.sim.engines import get_engine
+    from hexjax.sim.physics import Physics, get_physics
+    own = lambda p, e=None, why="": Physics(p, get_engine(e or p.engine), p.settings, p.name, (), why)
     b = get_physics(o.against)
     if o.refine:
         a = get_physics(b, timestep=b.timestep / 2, iterations=2 * b.iterations,
                         ls_iterations=2 * b.ls_iterations, name=f"{b.name}-refined")
-        return a, b, b.backend
+        return own(a, b.engine, "refined"), own(b, why="held against")
     a = get_physics(o.physics)
-    return a, b, (o.backend or a.backend)
+    e = get_engine(o.engine or a.engine)
+    if not e.available():
+        raise ValueError(f"--engine={e.name}: {e.title} is not installed here: {e.install}")
+    return own(a, e.name, "under test"), own(b, why="held against")
 
 
 def _runs(o, cells: List[Cell], controllers: Dict, kinds: Dict[str, str], entry_preset: Dict):
@@ -153,10 +196,11 @@ def _cell_inputs(o, cell: Cell, j: int, rb, label: str, ctrl, key):
     return spec, terr, pert, params
 
 
-def _walk(o, preset, backend: str, label: str, ctrl, rb, duration: float, idx: List[int], cells: List[Cell], key,
+def _walk(o, preset, label: str, ctrl, rb, duration: float, idx: List[int], cells: List[Cell], key,
           mesh_for) -> Dict[str, List]:
-    """Per-env outcomes (lists, cells in `idx` order, `o.batch` envs each) of one controller under one preset:
-    one rollout call per group of cells that share a physics configuration."""
+    """Per-env outcomes (lists, cells in `idx` order, `o.batch` envs each) of one controller under one physics
+    (`Physics`): one rollout call per group of cells that share a physics configuration."""
+    from hexjax.sim.engines import MESH
     import jax
 
     from hexjax.sim.metrics import goal_errors
@@ -183,11 +227,12 @@ def _walk(o, preset, backend: str, label: str, ctrl, rb, duration: float, idx: L
         batched = inputs[js[0]][3] is not None
         params = cat(*[inputs[j][3] for j in js]) if batched else ctrl.default_params()
         s, st = rollout(rb, terr, ctrl, params, duration, jax.random.fold_in(key, 10_000 + js[0]), physics=physics,
-                        config=RolloutConfig(), perturbation=pert, params_batched=batched, backend=backend,
-                        mesh=mesh_for(len(js) * o.batch) if backend == "mjx" else None, stats=True)
+                        config=RolloutConfig(), perturbation=pert, params_batched=batched, engine=preset.engine.name,
+                        mesh=None if preset.engine.lacks({MESH}) else mesh_for(len(js) * o.batch), stats=True)
         if getattr(o, "progress", True):
-            print(f"  {label} on {preset.name} ({backend}): {len(js)} cells x {o.batch} envs in {st.wall_s:.0f} s "
-                  f"(compile {st.compile_s:.0f} s, {st.env_steps_per_s:,.0f} env-steps/s)", flush=True)
+            print(f"  {label} on {preset.name} ({preset.engine.name}): {len(js)} cells x {o.batch} envs in "
+                  f"{st.wall_s:.0f} s (compile {st.compile_s:.0f} s, {st.env_steps_per_s:,.0f} env-steps/s)",
+                  flush=True)
         e = goal_errors(s, o.distance)
         cols = dict(success=e.success, advance=e.advance, dy=e.dy, dalpha=e.dalpha, fell=s.fell, nan=s.nan,
                     slip=s.foot_slip, path=s.path_length)
@@ -197,7 +242,7 @@ def _walk(o, preset, backend: str, label: str, ctrl, rb, duration: float, idx: L
     return {str(j): per_cell[j] for j in idx}
 
 
-def _replay(o, preset, backend: str, spec: Dict, key, robot) -> Dict[str, List]:
+def _replay(o, preset, spec: Dict, key, robot) -> Dict[str, List]:
     """Torso traces (x, y, z, yaw) at the replay times of the open-loop Luneckas 2020 gait on the replay cells,
     under one preset: {cell name: (B, times, 4) as lists}."""
     import jax
@@ -222,7 +267,7 @@ def _replay(o, preset, backend: str, spec: Dict, key, robot) -> Dict[str, List]:
             rnd = {} if cell.friction is None else {"friction": cell.friction}
             pert = sample_perturbation(randomization_from_dict(rnd), k_p, o.batch)
         s = rollout(robot, terr, ctrl, ctrl.default_params(), max(times), k_r, physics=preset.config(tspec),
-                    config=RolloutConfig(record=True), perturbation=pert, backend=backend)
+                    config=RolloutConfig(record=True), perturbation=pert, engine=preset.engine.name)
         out[cell.name] = np.asarray(s.trace)[:, steps].tolist()
     return out
 
@@ -286,7 +331,7 @@ def run(o, entry) -> Dict:
         if not cells:
             raise ValueError(f"--only {','.join(o.only)}: no cell of the matrix matches; cells: "
                              + ", ".join(c.name for c in matrix(spec)))
-    a, b, backend_a = _presets(o)
+    a, b = _presets(o)
     _host_devices()
     import jax
     from tqdm.auto import tqdm
@@ -302,7 +347,7 @@ def run(o, entry) -> Dict:
         n_dev = max(d for d in range(1, len(jax.devices()) + 1) if n % d == 0)
         return make_mesh(jax.devices()[:n_dev]) if n_dev > 1 else None
 
-    presets = {"a": a.record(backend_a), "b": b.record()}
+    presets = {"a": a.record(), "b": b.record()}
     pkey = {side: _physics_key(r) for side, r in presets.items()}
     digest = _digest(o, spec)
     partial = (o.json + ".partial.json") if o.json else ""
@@ -310,36 +355,40 @@ def run(o, entry) -> Dict:
     rep = spec.get("replay") if not o.only else None
     labels = [r[0] for r in runs] + (["replay"] if rep else [])
     done: Dict = read_partial(partial, digest, "runs", "fidelity", "rollouts", 2 * len(labels))
-    sides = {"a": (a, backend_a), "b": (b, b.backend)}
+    done |= _kept_runs(digest, [f"{lb}|{pkey[s]}" for lb in labels for s in pkey], done)
+    sides = {"a": a, "b": b}
     todo = {side: [lb for lb in labels if f"{lb}|{pkey[side]}" not in done] for side in sides}
     bar = tqdm(total=2 * len(labels), initial=2 * len(labels) - sum(map(len, todo.values())), desc="fidelity",
                unit="rollout", disable=not getattr(o, "progress", True))
     lock = threading.Lock()
 
     def work(side):
-        preset, backend = sides[side]
-        # MuJoCo C steps on the host's cores: its controller steps stay on the host too, off the accelerator
-        ctx = jax.default_device(jax.devices("cpu")[0]) if backend == "c" else contextlib.nullcontext()
+        preset = sides[side]
+        # an engine that steps on the host's cores keeps its controller steps on the host too, off the accelerator
+        host = preset.engine.hosts == ("cpu",)
+        ctx = jax.default_device(jax.devices("cpu")[0]) if host else contextlib.nullcontext()
         with ctx:
             for label in todo[side]:
                 if f"{label}|{pkey[side]}" in done:  # the other side ran the same physics
                     continue
                 if label == "replay":
-                    out = _replay(o, preset, backend, rep, key, robot)
+                    out = _replay(o, preset, rep, key, robot)
                 else:
                     _, ctrl, rb, duration, idx = next(r for r in runs if r[0] == label)
-                    out = _walk(o, preset, backend, label, ctrl, rb, duration, idx, cells, key, mesh_for)
+                    out = _walk(o, preset, label, ctrl, rb, duration, idx, cells, key, mesh_for)
                 with lock:
                     done[f"{label}|{pkey[side]}"] = out
+                    _keep_run(digest, f"{label}|{pkey[side]}", out)
                     if partial:
                         write_partial(partial, {"digest": digest, "runs": done}, f"{len(done)} of "
                                       f"{2 * len(labels)} rollouts kept in {partial}; the same command resumes")
-                    bar.set_postfix_str(f"{label} on {preset.name} ({backend}) done")
+                    bar.set_postfix_str(f"{label} on {preset.name} ({preset.engine.name}) done")
                     bar.update(1)
 
     try:
-        if sides["a"][1] != sides["b"][1] and "c" in (sides["a"][1], sides["b"][1]):
-            # MuJoCo C on the host's cores beside the other engine, each side in its own thread
+        on_host = [sides[s].engine.hosts == ("cpu",) for s in ("a", "b")]
+        if on_host[0] != on_host[1] and jax.default_backend() != "cpu":
+            # an engine on the host's cores beside one on the accelerator, each side in its own thread
             with concurrent.futures.ThreadPoolExecutor(2) as pool:
                 for f in [pool.submit(work, side) for side in ("b", "a")]:
                     f.result()

@@ -10,12 +10,18 @@ import numpy as np
 CONTRACT = {"success_pts": 5.0, "advance_cm": 1.5, "heading_deg": 1.5}
 
 
+def _engine(record) -> str:
+    """The engine a JSON's physics record names (older records call it `backend`)."""
+    e = record.get("engine", record.get("backend"))
+    return e["backend"] if isinstance(e, dict) else e
+
+
 def report(res: Dict) -> str:
     c, s = res["config"], res["summary"]
     pa, pb = res["physics"], res["against"]
     head = (f"{'controller':<11} {'cell':<26} {'succ % A/B':>12} {'d succ (95 % CI)':>22} {'d adv cm':>9} "
             f"{'d head deg':>10} {'d drift cm':>10} {'fall % A/B':>11} {'slip cm/m A/B':>14}  ok")
-    lines = [f"\nfidelity: {pa['name']} ({pa['backend']}) against {pb['name']} ({pb['backend']}), {c['batch']} envs per "
+    lines = [f"\nfidelity: {pa['name']} ({_engine(pa)}) against {pb['name']} ({_engine(pb)}), {c['batch']} envs per "
              f"cell, {c['distance_m']:g} m, seed {c['seed']}",
              f"contract: |d success| <= {CONTRACT['success_pts']:g} points, |d mean advance| <= "
              f"{CONTRACT['advance_cm']:g} cm, |d heading| <= {CONTRACT['heading_deg']:g} deg (A - B)", head,
@@ -71,7 +77,7 @@ def plot(res: Dict, png: str) -> List[str]:
     axs[0].set_ylim(len(rows) - 0.5, -0.5)  # the first cell on top, no margin rows
     pa, pb = res["physics"], res["against"]
     height = fig.get_size_inches()[1]
-    fig.suptitle(f"fidelity: {pa['name']} ({pa['backend']}) - {pb['name']} ({pb['backend']}), "
+    fig.suptitle(f"fidelity: {pa['name']} ({_engine(pa)}) - {pb['name']} ({_engine(pb)}), "
                  f"{res['config']['batch']} envs per cell; green band: the contract", y=1 - 0.15 / height)
     fig.tight_layout(rect=(0, 0, 1, 1 - 0.45 / height))
     fig.savefig(png, dpi=100)

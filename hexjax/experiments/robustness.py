@@ -99,12 +99,12 @@ def envelope(values: Sequence[float], successes: Sequence[Tuple[int, int]], axis
             "sure_level": None if sure is None else values[sure]}
 
 
-def solver_note(kind: str, backend: str, iterations: int):
+def solver_note(kind: str, engine, iterations: int):
     """A line for the user where the cells' physics is known to distort the result, else None: MJX with fewer
     than 4 Newton iterations leaves the contact solve unconverged below friction 1.0 (the open-loop gait's success
     at friction 0.6 read 12 % against converged MuJoCo's 43 %), and on stepping stones it turns stalls into falls
     (docs/physics.md, docs/robustness.md)."""
-    if backend in ("mjx", "warp") and iterations < 4:
+    if engine.culls and iterations < 4:  # the MJX family (MuJoCo C's reference settings converge)
         where = "on stepping stones most falls at wide gaps are the solver's" if kind == "stones" else \
             "success below friction 1.0 is the solver's"
         return (f"note: {iterations} Newton iterations leave MJX's contact solve unconverged and {where}, not the "
@@ -114,18 +114,20 @@ def solver_note(kind: str, backend: str, iterations: int):
 
 def _digest(o) -> str:
     keys = ("controllers", "axis", "batch", "terrain", "robot", "distance", "seed", "randomization", "per_env",
-            "backend")
+            "engine")
     blob = {k: getattr(o, k) for k in keys}
     blob["physics"] = _engine(o).record()
     return hashlib.sha256(json.dumps(blob, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
 def _engine(o):
-    """The engine the sweep runs (`hexjax.sim.physics.pick_engine`; MJX across several processes)."""
+    """The physics the sweep runs (`hexjax.sim.physics.pick`; across several processes an engine with a device
+    mesh)."""
     import jax
 
-    from hexjax.sim.physics import NOT_MJX, pick_engine
-    return pick_engine(o.physics, o.backend or None, exclude=NOT_MJX if jax.process_count() > 1 else ())
+    from hexjax.sim.engines import MESH
+    from hexjax.sim.physics import pick
+    return pick(o.physics, o.engine or None, needs={MESH} if jax.process_count() > 1 else ())
 
 
 def _controllers(names, default_robot):
@@ -165,9 +167,8 @@ def _avoid_params(ctrl, terr, kind: str, distance: float):
     return p0.replace(valid=v, avoid=p0.avoid.replace(goal_tol=jnp.full((b,), 0.03, jnp.float32)))
 
 
-def sweep(o) -> Dict:
-    """The sweep of parsed options `o` (configs/commands/robustness.yaml). The options that need no JAX are
-    checked before it is imported, so a bad --axis answers at once."""
+def _checked(o):
+    """(axes, base randomization) of parsed options `o`, checked without JAX, so a bad --axis answers at once."""
     axes = [parse_axis(a) for a in o.axis]
     if not 1 <= len(axes) <= 2:
         raise ValueError(f"--axis given {len(axes)} times: sweep one or two axes")
@@ -180,12 +181,17 @@ def sweep(o) -> Dict:
     raw = read_yaml(o.randomization) if o.randomization else None
     if raw is not None and "randomization" in raw:  # a file with a randomization: block, or the block alone
         raw = raw["randomization"]
-    base_rand = randomization_from_dict(raw, source=o.randomization or "randomization")
+    return axes, randomization_from_dict(raw, source=o.randomization or "randomization")
 
+
+def sweep(o) -> Dict:
+    """The sweep of parsed options `o` (configs/commands/robustness.yaml), after `prepare`."""
+    axes, base_rand = _checked(o)
     import jax
     from tqdm.auto import tqdm
 
     from hexjax.control.tactile import overcome_height
+    from hexjax.sim.engines import MESH
     from hexjax.sim.metrics import batch_stats, goal_errors
     from hexjax.sim.config import RolloutConfig
     from hexjax.sim.rollout import make_mesh, rollout
@@ -194,12 +200,10 @@ def sweep(o) -> Dict:
     from hexjax.world.randomization import sample_perturbation
     from hexjax.world.terrain import leg_scale, pad_terrain, sample
 
-    engine = _engine(o)
-    preset, backend = engine.preset, engine.backend
-    if jax.process_index() == 0:
-        print(engine.header(), flush=True)
-    if backend != "mjx" and jax.process_count() > 1:
-        raise ValueError(f"--backend={backend}: several processes need --backend mjx")
+    chosen = _engine(o)  # one ValueError line for an --engine without a device mesh across several processes
+    engine = chosen.engine
+    if jax.process_index() == 0 and chosen is not o.physics:  # the runner printed the one it chose
+        print(chosen.header(), flush=True)
     robot = get_robot(o.robot)
     ctrls = _controllers(o.controllers, robot)
     base_terrain = get_terrain(o.terrain, length=o.distance + 0.3)
@@ -221,7 +225,7 @@ def sweep(o) -> Dict:
         t.validate()
         t_specs.append(t)
         r_specs.append(r)
-    physics = preset.config(base_terrain)
+    physics = chosen.config(base_terrain)
     physics.validate()
     # each cell's envs sharded over as many devices as divide the batch (several GPUs, or a CPU's cores); with
     # several processes (jax.distributed) over every device of every process
@@ -232,11 +236,11 @@ def sweep(o) -> Dict:
                              f"{jax.process_count()} processes")
     else:
         n_dev = max(d for d in range(1, len(jax.devices()) + 1) if o.batch % d == 0)
-    if backend != "mjx":  # warp and c run on one device / the host's threads
+    if engine.lacks({MESH}):  # warp and c run on one device / the host's threads
         n_dev = 1
     mesh = make_mesh(jax.devices()[:n_dev]) if n_dev > 1 else None
     lead = jax.process_index() == 0  # writes the partial file; the others only compute their shards
-    note = solver_note(base_terrain.kind, backend, physics.iterations)
+    note = solver_note(base_terrain.kind, engine, physics.iterations)
     if note and lead:
         print(note, file=sys.stderr)
     n_box = max(s.max_boxes for s in t_specs)
@@ -277,7 +281,7 @@ def sweep(o) -> Dict:
             params = _avoid_params(ctrl, terr, t_specs[i].kind, o.distance)
         summ, st = rollout(rb, terr, ctrl, params, duration, k_r, physics=physics, config=RolloutConfig(),
                            perturbation=pert, stats=True, mesh=mesh, params_batched=kind == "avoid",
-                           backend=backend)
+                           engine=engine.name)
         errs = goal_errors(summ, o.distance)
         stats = batch_stats(summ, errs, o.distance)
         k = int(np.asarray(errs.success).sum())
@@ -308,8 +312,8 @@ def sweep(o) -> Dict:
                            terrain=o.terrain, distance_m=o.distance, seed=o.seed, randomization=base_rand.to_dict(),
                            robots={c: plan[c][1].name for c in ctrls},
                            durations_s={c: plan[c][2] for c in ctrls}, backend=jax.default_backend(),
-                           devices=n_dev, processes=jax.process_count(), physics_backend=backend),
-            "cells": rows, "envelope": env, "compile_s": compile_s, "physics": engine.record()}
+                           devices=n_dev, processes=jax.process_count(), engine=engine.name),
+            "cells": rows, "envelope": env, "compile_s": compile_s, "physics": chosen.record()}
 
 
 def _host_devices():
@@ -339,9 +343,15 @@ def _distributed(o) -> None:
     cache.every_cpu_process_writes()
 
 
-def run(o, entry) -> Dict:
+def prepare(o) -> None:
+    """What the runner calls before it picks the physics (which loads JAX): the options checked without JAX, the
+    host's cores as devices and, with --processes > 1, JAX's multi-process runtime, both set before JAX loads."""
+    _checked(o)
     _host_devices()
     _distributed(o)
+
+
+def run(o, entry) -> Dict:
     res = sweep(o)
     if "process" in res:  # not process 0: nothing to write
         o.json = o.png = ""

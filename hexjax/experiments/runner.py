@@ -130,30 +130,27 @@ def run(entry: Entry, o: types.SimpleNamespace) -> Dict[str, Any]:
     result and prints what was written."""
     check_options(entry, o)
     check_batch_memory(o)
-    preset = None
     names = {opt.name for opt in entry.options}
+    physics = None
     if "physics" in names and "against" not in names:  # `hexjax fidelity` names its two presets itself
-        from hexjax.sim.physics import get_physics, pick_engine, timed_settings
-        given = o.physics if isinstance(o.physics, list) else [o.physics]  # `hexjax bench` times several
-        presets = [get_physics(n) for n in given]  # a bad file or value: one line, before anything runs
-        backend = getattr(o, "backend", "")
-        if isinstance(backend, str) and "backend" in names:
-            # an evaluation: the module picks the engine (the fastest certified for the preset on this host, which
-            # needs JAX to know the host) and prints it; a --backend the preset does not certify fails here, in one
-            # line, before anything runs
-            if backend:
-                pick_engine(presets[0], backend)
+        from hexjax.sim.physics import get_physics, pick, timed_settings
+        if isinstance(o.physics, list):  # `hexjax bench` times each preset on each engine it lists
+            for p in [get_physics(n) for n in o.physics]:  # a bad file or value: one line, before anything runs
+                for e in o.engine or [None]:
+                    print(timed_settings(p, e).header(), flush=True)
         else:
-            backend = ",".join(backend) if isinstance(backend, list) else backend  # `hexjax bench --backend mjx,c`
-            for p in presets:
-                for be in (backend.split(",") if backend else [None]):
-                    print(timed_settings(p, be)[0].header(be), flush=True)
-        preset = presets if isinstance(o.physics, list) else presets[0]
+            # the physics is chosen here, once: the fastest engine certified for the preset on this host that can
+            # do what the command needs (`NEEDS`), or the one --engine names; the command runs it as given
+            mod = importlib.import_module(entry.entry)
+            if hasattr(mod, "prepare"):  # checks that need no JAX and settings made before it loads
+                mod.prepare(o)
+            physics = pick(o.physics, getattr(o, "engine", "") or None, needs=getattr(mod, "NEEDS", frozenset()))
+            print(physics.header(), flush=True)
+            o = types.SimpleNamespace(**{**vars(o), "physics": physics})
     mod = importlib.import_module(entry.entry)
     res = mod.run(o, entry)
-    if preset is not None and isinstance(res, dict):  # every result names the physics it ran
-        res.setdefault("physics", [p.record(backend or None) for p in preset] if isinstance(preset, list)
-                       else preset.record(backend or None))
+    if physics is not None and isinstance(res, dict):  # every result names the physics it ran
+        res.setdefault("physics", physics.record())
     print(mod.report(res))
     written: List[str] = []
     if getattr(o, "png", "") and hasattr(mod, "plot"):

@@ -21,12 +21,15 @@ from hexjax.control.registry import make_controller
 from hexjax.sim.metrics import paired
 from hexjax.experiments.registry import experiment
 from hexjax.sim.config import RolloutConfig
-from hexjax.sim.physics import get_physics, shared_config, traced_backend
+from hexjax.sim.engines import TRACES
+from hexjax.sim.physics import pick, shared_config
 from hexjax.sim.rollout import rollout
 from hexjax.tune.space import load_values, with_values
 from hexjax.world.presets import get_robot, get_terrain
 from hexjax.world.robot import LEG_NAMES, leg_fk
 from hexjax.world.terrain import sample
+
+NEEDS = frozenset({TRACES})  # what this experiment needs of its engine: the walks' traces (the runner picks the engine once)
 
 
 def _obstacle_end(terrain, kind: str) -> np.ndarray:
@@ -170,8 +173,7 @@ def run_experiment(name: str, batch: int = 32, seed: int = 0, duration: Optional
     if not (math.isfinite(dur) and dur > 0):
         raise ValueError(f"duration={duration!r}: must be a finite number of seconds > 0")
     robot = get_robot(ex["robot"])
-    preset = get_physics(physics)
-    backend = traced_backend(preset, "foot traces (a step's success reads them)")
+    preset = pick(physics, needs=NEEDS)  # a step's success reads the foot traces
     if params:
         with_values(make_controller("cpg", robot).default_params(), params)  # a wrong name or shape fails here
     variants = list(ex["variants"].items())
@@ -179,9 +181,9 @@ def run_experiment(name: str, batch: int = 32, seed: int = 0, duration: Optional
     out = {"config": {"experiment": name, "robot": robot.name, "batch": batch, "seed": seed, "duration_s": dur,
                       "terrains": list(ex["terrains"]), "variants": [v for v, _ in variants],
                       "stumble_tilt_deg": math.degrees(stumble_tilt),
-                      "solver_iterations": preset.iterations,
+                      "solver_iterations": preset.settings.iterations,
                       "params": {k: np.asarray(v).tolist() for k, v in (params or {}).items()} or "the paper's"},
-           "results": {}, "_records": {}, "timing": [], "physics": preset.record(backend)}
+           "results": {}, "_records": {}, "timing": [], "physics": preset.record()}
     ctrl = make_controller("cpg", robot)
     rows = [(t, v, o or {}) for t in ex["terrains"] for v, o in variants]
     specs = {t: get_terrain(t, **ex.get("terrain_overrides", {})) for t in ex["terrains"]}
@@ -201,7 +203,7 @@ def run_experiment(name: str, batch: int = 32, seed: int = 0, duration: Optional
         terrain, p, keys = paired_rows([sampled[rows[i][0]] for i in idx], params_rows, batch, seed)
         bar.set_postfix_str(", ".join(f"{rows[i][0]} / {rows[i][1]}" for i in idx))
         s, st = rollout(robot, terrain, ctrl, p, dur, keys,
-                        physics=shared_config(preset, [specs[rows[i][0]] for i in idx]), backend=backend,
+                        physics=shared_config(preset, [specs[rows[i][0]] for i in idx]), engine=preset.engine.name,
                         # the step's success and the ditch floor read the foot traces
                         config=RolloutConfig(record=True),
                         params_batched=True, stats=True)

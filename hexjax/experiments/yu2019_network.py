@@ -25,10 +25,13 @@ from hexjax.control.registry import make_controller
 from hexjax.control.vdp import NetworkParams, integrate, phase_amplitude
 from hexjax.experiments.yu2019 import paired_rows
 from hexjax.sim.config import RolloutConfig
-from hexjax.sim.physics import get_physics, traced_backend
+from hexjax.sim.engines import TRACES
+from hexjax.sim.physics import pick
 from hexjax.sim.rollout import rollout
 from hexjax.world.presets import get_robot, get_terrain
 from hexjax.world.terrain import sample
+
+NEEDS = frozenset({TRACES})  # what this experiment needs of its engine: the walks' traces (the runner picks the engine once)
 
 STANCE_MODES = (MODE_NAMES.index("stance"), MODE_NAMES.index("stance-prolong"))
 
@@ -59,15 +62,14 @@ def gait_walk(gaits, batch: int, seed: int, duration: float, physics) -> Dict:
     """Walks each Eq. 16 gait on flat ground (one batch of len(gaits) x batch envs); per gait the duty factor and
     legs in swing at once, after the first gait cycle, and the torso's speed."""
     robot = get_robot("yu2019")
-    preset = get_physics(physics)
-    backend = traced_backend(preset, "controller traces (the legs' swing/stance modes)")
+    preset = pick(physics, needs=NEEDS)  # the legs' swing/stance modes are read from the controller's traces
     spec = get_terrain("flat")
     flat = sample(spec, jax.random.PRNGKey(seed), batch)
     ctrl = make_controller("cpg", robot)
     rows = [ctrl.default_params(**gait_fields(g)) for g in gaits]
     terrain, params, keys = paired_rows([flat] * len(gaits), rows, batch, seed)
     t0 = time.perf_counter()
-    s, st = rollout(robot, terrain, ctrl, params, duration, keys, physics=preset.config(spec), backend=backend,
+    s, st = rollout(robot, terrain, ctrl, params, duration, keys, physics=preset.config(spec), engine=preset.engine.name,
                     config=RolloutConfig(record=True), params_batched=True, stats=True)
     mode = np.asarray(s.ctrl_trace["mode"])  # (B, T, 6)
     stance = np.isin(mode, STANCE_MODES)

@@ -40,7 +40,7 @@ from hexjax.control.gait import GaitController, GaitState
 from hexjax.sim.config import PhysicsConfig, RolloutConfig, SensorConfig, physics_for
 from hexjax.sim.model import mjx, read_obs, sim_model
 from hexjax.sim.perturb import pair_friction_with
-from hexjax.sim.step import env_view, fall_state, keep_finite, physics, substeps
+from hexjax.sim.step import env_view, fall_state, physics, substeps
 from hexjax.world.presets import get_robot, get_terrain
 from hexjax.world.terrain import Terrain, sample_one
 
@@ -151,7 +151,7 @@ class HexapodGoalEnv(Env):
             base = self._ctrl0
         m, d, _ = self._view(hs, hs.data)
         d = d.replace(ctrl=base + self.residual_scale * a)
-        d_new, finite = keep_finite(physics(m, d, self.n_sub)[0], d)
+        d_new, finite = self.sm.engine.keep_finite(physics(m, d, self.n_sub)[0], d)
         dist = jnp.linalg.norm(hs.goal - d_new.qpos[:2])
         fell = fall_state(self.fall, d_new.qpos, hs.terrain.ground_z)[0] | ~finite
         reached = dist < 0.1

@@ -11,7 +11,10 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from hexjax.sim.engines import GRADIENTS
 from hexjax.rl.env import HexapodGoalEnv
+
+NEEDS = frozenset({GRADIENTS})  # the Brax env steps MJX itself: its state is MJX's Data, a JAX pytree
 
 
 def _gspmd():
@@ -86,10 +89,9 @@ def train_ppo(env: HexapodGoalEnv, num_timesteps: int = 60_000, num_envs: int = 
 
 # The command (configs/commands/ppo.yaml) ------------------------------------------------------------------------
 def run(o, entry) -> Dict:
-    from hexjax.sim.physics import get_physics, traced_backend
+    from hexjax.sim.physics import pick
     from hexjax.world.presets import get_terrain
-    preset = get_physics(o.physics)
-    traced_backend(preset, "Brax env state (the env steps MJX itself)")
+    preset = pick(o.physics, needs=NEEDS)
     env = HexapodGoalEnv(robot=o.robot, terrain=o.terrain, goal_distance=o.goal,
                          physics=preset.config(get_terrain(o.terrain)))
     t0 = time.perf_counter()

@@ -22,15 +22,17 @@ class PhysicsConfig:
 
     The defaults are the `fast` physics preset (configs/physics/fast.yaml): two Newton iterations, MJX's
     pyramidal cone. Results are reported on the `validated` preset (`hexjax.sim.physics.get_physics`), whose
-    every figure is within the fidelity contract of converged MuJoCo C (docs/physics.md)."""
+    every figure is within the fidelity contract of converged MuJoCo C (docs/physics.md). A preset holds its
+    settings as one of these (`PhysicsPreset.settings`), where a slot count of None means the terrain's own;
+    `PhysicsPreset.config(terrain)` gives the counts a model is built with."""
 
     timestep: float = 0.005  # s
     iterations: int = 2  # 1 lets six stance feet chatter (measured: torso hops, 1.5 of 6 feet in contact)
     ls_iterations: int = 4
     integrator: str = "implicitfast"
     cone: str = "pyramidal"
-    slots_per_leg: int = 2
-    torso_slots: int = 2
+    slots_per_leg: Optional[int] = 2  # terrain boxes each leg collides with at a time (MJX engines); None: the terrain's
+    torso_slots: Optional[int] = 2  # and the torso
     tolerance: float = 1e-8  # MuJoCo's opt.tolerance: the Newton loop stops once its relative improvement is below
     ls_tolerance: float = 0.01  # MuJoCo's opt.ls_tolerance: the line search's stopping rule
     impratio: float = 1.0  # MuJoCo's opt.impratio: frictional over normal constraint impedance (elliptic cone)
@@ -56,8 +58,8 @@ class PhysicsConfig:
             raise ValueError(f"physics.cone={self.cone!r}: use one of {CONES}")
         for f in ("slots_per_leg", "torso_slots"):
             v = getattr(self, f)
-            if not (whole(v) and 0 <= v <= 16):
-                raise ValueError(f"physics.{f}={v!r}: must be a whole number in [0, 16]")
+            if not (v is None or whole(v) and 0 <= v <= 16):
+                raise ValueError(f"physics.{f}={v!r}: must be a whole number in [0, 16] (or null: the terrain's own)")
 
 
 def physics_for(kind: str, base: "PhysicsConfig | None" = None) -> "PhysicsConfig":

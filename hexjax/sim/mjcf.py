@@ -27,15 +27,17 @@ def _f(*xs) -> str:
 
 # Contact sensors (`contact_sensors=True`): per leg, the net terrain force on the foot (world frame, 3 values),
 # then the contact-frame forces of up to SENSOR_MATCHES contacts of the foot and of the pad (normal first,
-# SENSOR_MATCHES x 3 each), then 18 actuator forces. `hexjax.sim.model.obs_from_sensordata` decodes them.
+# SENSOR_MATCHES x 3 each), then 18 actuator forces, then each foot site's world position (6 x 3: the foot traces of
+# MuJoCo C). `hexjax.sim.model.obs_from_sensordata` decodes them.
 SENSOR_MATCHES = 4
 
 
 def sensor_layout() -> dict:
     """Offsets into sensordata of the blocks `build_mjcf(..., contact_sensors=True)` declares."""
     per_leg = 3 + 2 * 3 * SENSOR_MATCHES
+    actuator = N_LEGS * per_leg
     return dict(per_leg=per_leg, foot_net=0, foot_each=3, pad_each=3 + 3 * SENSOR_MATCHES,
-                actuator=N_LEGS * per_leg, size=N_LEGS * per_leg + 3 * N_LEGS)
+                actuator=actuator, feet=actuator + 3 * N_LEGS, size=actuator + 6 * N_LEGS)
 
 
 def option_xml(physics: PhysicsConfig, gravity=None) -> str:
@@ -120,6 +122,8 @@ def build_mjcf(spec: RobotSpec, physics: PhysicsConfig, *, contact_sensors: bool
         for name in LEG_NAMES:
             for j in ("coxa", "femur", "tibia"):
                 sensors.append(f'<actuatorfrc name="{name}_{j}_force" actuator="{name}_{j}"/>')
+        for name in LEG_NAMES:
+            sensors.append(f'<framepos name="{name}_foot_pos" objtype="site" objname="{name}_foot"/>')
 
     pairs = []
     for name in LEG_NAMES:

@@ -19,7 +19,7 @@ from flax import struct
 
 from hexjax.sim.config import PhysicsConfig, SensorConfig
 from hexjax.sim.mjcf import PARKED_Z, SENSOR_MATCHES, build_mjcf, sensor_layout
-from hexjax.sim.internals.contacts import contact_forces, contact_geoms, warn_overflow_but_iterations
+from hexjax.sim.internals.contacts import contact_forces, contact_geoms
 from hexjax.sim.internals.rules import mjx  # imported there without MJX's notice about the optional Warp backend
 from hexjax.world.robot import LEG_NAMES, N_LEGS, RobotSpec, neutral_feet_body
 from hexjax.world.terrain import Terrain
@@ -51,34 +51,26 @@ class Obs:
     time: jax.Array
 
 
-IMPLS = ("jax", "warp")
-
-
 class SimModel:
     """MuJoCo / MJX models of one robot with terrain slots, plus static index maps. Built once on the host.
 
-    impl: MJX's implementation, 'jax' (default; differentiable, any device) or 'warp' (MuJoCo Warp kernels
-    through MJX, CUDA GPUs or CPU; needs the warp-lang package, forward only). The 'warp' model also declares
-    contact sensors, and the rollout reads its observations from them (`obs_from_sensordata`)."""
+    engine: an MJX-family engine of `hexjax.sim.engines` (its name or the engine): 'mjx' (MJX in JAX; the
+    default) or 'warp' (MuJoCo Warp kernels through MJX), which puts the model on the device and whose model also
+    declares MuJoCo's contact sensors, read by its observations (`obs_from_sensordata`)."""
 
-    def __init__(self, robot: RobotSpec, physics: PhysicsConfig, impl: str = "jax"):
-        if impl not in IMPLS:
-            raise ValueError(f"impl={impl!r}: use one of {IMPLS}")
-        self.robot, self.physics, self.impl = robot, physics, impl
-        self.xml = build_mjcf(robot, physics, contact_sensors=impl == "warp")
+    def __init__(self, robot: RobotSpec, physics: PhysicsConfig, engine="mjx"):
+        from hexjax.sim.engines import get_engine
+        engine = get_engine(engine)
+        if not hasattr(engine, "put_model"):
+            raise ValueError(f"engine={engine.name!r}: SimModel is the MJX family's model (mjx, warp)")
+        physics.validate()
+        for f in ("slots_per_leg", "torso_slots"):
+            if getattr(physics, f) is None:
+                raise ValueError(f"physics.{f}=None: give the terrain's count (`PhysicsPreset.config(terrain)`)")
+        self.robot, self.physics, self.engine = robot, physics, engine
+        self.xml = build_mjcf(robot, physics, contact_sensors=engine.contact_sensors)
         self.mj_model = mujoco.MjModel.from_xml_string(self.xml)
-        if impl == "warp":
-            from mujoco.mjx import warp as mjx_warp
-            if not mjx_warp.WARP_INSTALLED:
-                raise RuntimeError("impl='warp' needs the warp-lang package: pip install 'hexjax[warp]'")
-            from hexjax.sim.internals import warp_cpu
-            warp_cpu.enable()  # on a CPU, Warp's calls are recorded once and replayed (internals/warp_cpu.py)
-            self.mjx_model = mjx.put_model(self.mj_model, impl="warp")
-            self.mjx_model = warn_overflow_but_iterations(self.mjx_model)
-        else:
-            # on this process's own first device: MJX's default, jax.devices()[0], belongs to process 0 when several
-            # processes share a run (jax.distributed), and arrays on it cannot be used here
-            self.mjx_model = mjx.put_model(self.mj_model, device=jax.local_devices()[0])
+        self.mjx_model = engine.put_model(self.mj_model)
         m = self.mj_model
         gid = lambda n: mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, n)
         self.ground_geom = gid("ground")
@@ -97,12 +89,14 @@ class SimModel:
         # Static contact -> (foot, pad) membership. MJX lays contacts out by pair group, each group
         # repeated by its collision function's contact count; that order is fixed at trace time, so
         # the map holds for every step of every env (tests/test_sim.py checks it against mjx.forward).
-        # Computed on the JAX implementation also for 'warp', whose per-world contact and row counts it gives.
-        # (MJX's JAX implementation lacks the netforce contact sensor: the map is built on the sensorless model)
-        m_jax = m if impl == "jax" else mujoco.MjModel.from_xml_string(build_mjcf(robot, physics))
+        # Computed on MJX's JAX implementation for every engine (for MuJoCo Warp it gives the per-world contact and
+        # row counts). MJX's JAX implementation lacks the netforce contact sensor: the map is built on a model
+        # without sensors.
+        m_jax = mujoco.MjModel.from_xml_string(build_mjcf(robot, physics)) if engine.contact_sensors else m
         dev = jax.local_devices()[0]
         d = mjx.make_data(m_jax, impl="jax", device=dev)
-        geoms = contact_geoms(self.mjx_model if impl == "jax" else mjx.put_model(m_jax, impl="jax", device=dev), d)
+        geoms = contact_geoms(mjx.put_model(m_jax, impl="jax", device=dev) if engine.contact_sensors
+                              else self.mjx_model, d)
         self.ncon = geoms.shape[0]
         self.contact_foot = np.stack([(geoms == g).any(1) for g in self.foot_geoms], 1).astype(np.float32)
         self.contact_pad = np.stack([(geoms == g).any(1) for g in self.pad_geoms], 1).astype(np.float32)
@@ -130,11 +124,9 @@ class SimModel:
         return jax.jit(jax.vmap(one))
 
     def make_data(self, batch: int = 1):
-        """An empty mjx.Data. For 'warp' its contact pool is shared by the worlds of a vmap of size `batch`,
-        so it is sized for all of them (the JAX implementation's fixed per-world contact count x batch)."""
-        if self.impl == "warp":
-            return mjx.make_data(self.mj_model, impl="warp", **self.warp_pools(batch))
-        return mjx.make_data(self.mjx_model, device=jax.local_devices()[0])
+        """An empty mjx.Data of the engine's (MuJoCo Warp's contact pool is shared by the worlds of a vmap of
+        size `batch`, so it is sized for all of them)."""
+        return self.engine.make_data(self, batch)
 
     def warp_pools(self, batch: int = 1) -> dict:
         """MuJoCo Warp's pool sizes for `batch` worlds: contacts shared by all worlds (`naconmax`), constraint rows
@@ -151,10 +143,15 @@ class SimModel:
         return d.replace(qpos=qpos, ctrl=jnp.asarray(self.ctrl0))
 
 
+def sim_model(robot: RobotSpec, physics: PhysicsConfig, engine="mjx") -> SimModel:
+    """Cached `SimModel` (specs and engines are frozen dataclasses, so they key the cache)."""
+    from hexjax.sim.engines import get_engine
+    return _sim_model(robot, physics, get_engine(engine))
+
+
 @functools.lru_cache(maxsize=16)
-def sim_model(robot: RobotSpec, physics: PhysicsConfig, impl: str = "jax") -> SimModel:
-    """Cached `SimModel` (specs are frozen dataclasses, so they key the cache)."""
-    return SimModel(robot, physics, impl)
+def _sim_model(robot: RobotSpec, physics: PhysicsConfig, engine) -> SimModel:
+    return SimModel(robot, physics, engine)
 
 
 def _box_xy_distance(points, terrain: Terrain):
@@ -209,23 +206,16 @@ def env_model(sm: SimModel, terrain: Terrain, slot_pos, slot_size, base=None):
     m = sm.mjx_model if base is None else base
     ids = slot_geom_ids(sm)
     geom_pos = m.geom_pos.at[sm.ground_geom, 2].set(terrain.ground_z)
-    geom_size = m.geom_size
-    if ids.size:
-        geom_pos = geom_pos.at[ids].set(slot_pos)
-        geom_size = geom_size.at[ids].set(slot_size)
-    if sm.impl == "warp" and ids.size:
-        # MuJoCo Warp culls pairs by each geom's bounding sphere and box, compiled for the placeholder slot:
-        # they follow the slot's size (a box's bounding box is centred on it, half sizes = its half sizes)
-        rbound = m.geom_rbound.at[ids].set(jnp.linalg.norm(slot_size, axis=-1))
-        aabb = m.geom_aabb.at[ids, 0].set(0.0).at[ids, 1].set(slot_size)
-        return m.replace(geom_pos=geom_pos, geom_size=geom_size, geom_rbound=rbound, geom_aabb=aabb)
-    return m.replace(geom_pos=geom_pos, geom_size=geom_size)
+    if not ids.size:
+        return m.replace(geom_pos=geom_pos)
+    return sm.engine.place_slots(m, ids, geom_pos.at[ids].set(slot_pos), m.geom_size.at[ids].set(slot_size),
+                                 slot_size)
 
 
 def place_static_geoms(sm: SimModel, d, terrain: Terrain, slot_pos):
     """MuJoCo Warp computes world-frame poses of the world body's geoms once, in make_data, and never again,
     so moving a slot (or the ground) through the model's geom_pos does not move it there: its geom_xpos is
-    set here as well (world geoms keep the identity orientation). Needed with impl='warp' only."""
+    set here as well (world geoms keep the identity orientation). Needed on the warp engine only."""
     ids = slot_geom_ids(sm)
     xpos = d.geom_xpos.at[sm.ground_geom, 2].set(terrain.ground_z)
     if ids.size:
@@ -278,4 +268,11 @@ def obs_from_sensordata(sensors: SensorConfig, qpos, qvel, sensordata, time) -> 
 
 def actuator_forces(sensordata):
     """The 18 actuator forces from sensordata (contact_sensors=True models)."""
-    return sensordata[..., sensor_layout()["actuator"]:]
+    lay = sensor_layout()
+    return sensordata[..., lay["actuator"]:lay["feet"]]
+
+
+def foot_positions(sensordata):
+    """The six foot sites' world positions (..., 6, 3) from sensordata (contact_sensors=True models)."""
+    lay = sensor_layout()
+    return sensordata[..., lay["feet"]:lay["size"]].reshape(sensordata.shape[:-1] + (N_LEGS, 3))

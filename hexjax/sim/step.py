@@ -5,13 +5,15 @@ A control step (period `controller.dt`, `substeps` physics steps):
   1. terrain slots follow the feet, giving the env's model (`env_view`), and the sensors are read;
   2. `controller_phase`: the controller maps (params, state, obs) to joint targets, held at the settle posture
      while settling, with a perturbation's sensing and action effects around it;
-  3. `physics` runs the substeps; a step that goes non-finite is undone (`keep_finite`) and flagged;
+  3. `physics` runs the substeps; a step that goes non-finite is undone (the engine's `keep_finite`) and flagged;
   4. `accumulate` folds the step into the env's `Summary` fields: the fall test (`fall_state`), the start
      pose, energy, path length, travel, tilt and height extremes, tactile counts.
 `make_control_step` composes 1-4 (with the rollout's gradient truncation and bounds) for `lax.scan`; the
-windowed gradient (`hexjax.sim.windows`) runs that same step, and the MuJoCo C backend
-(`hexjax.sim.backends.mujoco_c`) calls `start_yaw`, `controller_phase`, `accumulate` and `summarise` between
-its physics calls, so every backend's start, controller phase and summary are these functions.
+windowed gradient (`hexjax.sim.windows`) runs that same step, and the MuJoCo C engine (`hexjax.sim.engines.c`)
+calls `start_yaw`, `controller_phase`, `accumulate` and `summarise` between its physics calls, so every
+engine's start, controller phase and summary are these functions. What differs between the MJX-family engines
+(how sensors are read, which fields a non-finite step restores, where gradients stop) is asked of the model's
+engine (`sm.engine`); this module imports none.
 """
 
 from __future__ import annotations
@@ -29,12 +31,12 @@ from hexjax.sim import perturb
 from hexjax.sim.internals import implicit
 from hexjax.sim.config import PhysicsConfig, RolloutConfig, SensorConfig
 from hexjax.sim.grad import clip_cotangent, cut_gradient
-from hexjax.sim.model import SimModel, assign_slots, env_model, mjx, obs_from_sensordata, place_static_geoms, read_obs
+from hexjax.sim.model import SimModel, assign_slots, env_model, mjx
 from hexjax.sim.slip import slip
 from hexjax.world.robot import quat_yaw, wrap_angle
 from hexjax.world.terrain import Terrain
 
-# mjx.Data fields that hold one env's state between control steps; with the Warp implementation only these
+# mjx.Data fields that hold one env's state between control steps; on the warp engine only these
 # are restored when a step goes non-finite (its contact pool is shared by all envs, so a per-env select
 # over the whole Data is not possible; the rest is recomputed from them by the next step)
 STATE_FIELDS = ("qpos", "qvel", "act", "time", "qacc_warmstart")
@@ -76,6 +78,8 @@ class Summary:
     foot_slip (B,) m              horizontal distance the feet slid while they stood: the point of each foot
                                   that touched the ground, summed over control steps and feet in contact at the
                                   step's start that did not rise during it (`hexjax.sim.slip.slip`)
+    overflow (B,) int or None     the engine's overflow flags over the walk (MuJoCo Warp: a bitmask of the
+                                  limits and pools each world hit, `hexjax.sim.engines.warp.overflow_counts`)
     trace (B, T, 4) or None       x, y, z, yaw per control step when RolloutConfig.record
     foot_trace (B, T, 6, 3) or None  foot centres, world frame, m, when RolloutConfig.record
     ctrl_trace or None            the controller's `trace(state, obs)` per step, when RolloutConfig.record
@@ -105,6 +109,7 @@ class Summary:
     force_trace: Optional[jax.Array] = None
     tactile_trace: Optional[jax.Array] = None
     foot_slip: Optional[jax.Array] = None
+    overflow: Optional[jax.Array] = None
 
 
 # Counts ----------------------------------------------------------------------------------------------------
@@ -230,24 +235,22 @@ def controller_phase(controller, sensors: SensorConfig, params, cstate, obs, i, 
 # Model, sensors and physics of one env ---------------------------------------------------------------------
 def env_view(sm: SimModel, sensors: SensorConfig, terrain: Terrain, d, base=None):
     """(model, data, obs) of one env at data d: slots moved onto the terrain boxes nearest the feet and torso
-    (`base`: the shared model, default `sm.mjx_model`), then the sensors read. With impl='warp' the slots'
-    world poses are set in d too and the sensors are MuJoCo's own."""
+    (`base`: the shared model, default `sm.mjx_model`), then the sensors read as the model's engine reads them."""
     slot_pos, slot_size = assign_slots(sm, terrain, d.site_xpos[jnp.asarray(sm.foot_sites), :2], d.qpos[:2])
     m = env_model(sm, terrain, slot_pos, slot_size, base=base)
-    if sm.impl == "warp":
-        d = place_static_geoms(sm, d, terrain, slot_pos)
-        return m, d, obs_from_sensordata(sensors, d.qpos, d.qvel, d.sensordata, d.time)
-    return m, d, read_obs(sm, sensors, m, d)
+    d, obs = sm.engine.observe(sm, sensors, terrain, m, d, slot_pos)
+    return m, d, obs
 
 
-def physics(m, d, n_sub: int, stop: bool = False, unroll: bool = False):
-    """`n_sub` mjx.step calls: (data after them, actuator power |torque * joint rate| (n_sub,) W). `stop`: pass
-    gradient from step to step through `GRAD_FIELDS` only (`stop_derived`; MJX-JAX Data). `unroll`: trace the
-    steps one after another instead of as a loop (`RolloutConfig.unroll_substeps`)."""
+def physics(m, d, n_sub: int, detach=None, unroll: bool = False):
+    """`n_sub` mjx.step calls: (data after them, actuator power |torque * joint rate| (n_sub,) W). `detach`:
+    applied to the data after each step (the engine's: MJX passes gradient from step to step through
+    `GRAD_FIELDS` only, `stop_derived`). `unroll`: trace the steps one after another instead of as a loop
+    (`RolloutConfig.unroll_substeps`)."""
     def sub(dd, _):
         dd = mjx.step(m, dd)
         power = jnp.sum(jnp.abs(dd.actuator_force * dd.qvel[6:]))
-        return (stop_derived(dd) if stop else dd), power
+        return (detach(dd) if detach is not None else dd), power
 
     channel = implicit.solutions_channel()
     if channel is None:
@@ -263,14 +266,6 @@ def physics(m, d, n_sub: int, stop: bool = False, unroll: bool = False):
     d, (power, kept) = jax.lax.scan(sub_channel, d, channel["given"], length=n_sub, unroll=unroll)
     channel["kept"] = kept
     return d, power
-
-
-def keep_finite(d_new, d, warp: bool = False):
-    """(d_new where its qpos and qvel are finite, else d; finite ()). With Warp only `STATE_FIELDS` revert."""
-    finite = jnp.all(jnp.isfinite(d_new.qpos)) & jnp.all(jnp.isfinite(d_new.qvel))
-    if warp:
-        return d_new.replace(**{f: jnp.where(finite, getattr(d_new, f), getattr(d, f)) for f in STATE_FIELDS}), finite
-    return jax.tree_util.tree_map(lambda a, b: jnp.where(finite, a, b), d_new, d), finite
 
 
 # The start of an env ----------------------------------------------------------------------------------------
@@ -296,9 +291,7 @@ def make_env_start(sm: SimModel, cfg: RolloutConfig, controller):
         ctrl0 = settle_action(params)
         d0 = d0.replace(qpos=d0.qpos.at[7:].set(ctrl0), ctrl=ctrl0)
         acc0 = init_acc(jnp.stack([d0.qpos[0], d0.qpos[1], yaw0]))
-        d0 = mjx.forward(m_shared, d0)
-        if sm.impl == "jax":
-            d0 = stop_derived(d0)
+        d0 = sm.engine.detach(mjx.forward(m_shared, d0))
         if cfg.grad_clip is not None:
             # Every leaf of the state one per env. Under `vmap` a leaf that starts equal for all envs and never
             # reads an env's data (the gait clock, Data.time) stays one unbatched value, and reverse mode sums its
@@ -384,8 +377,8 @@ def make_control_step(sm: SimModel, sensors: SensorConfig, cfg: RolloutConfig, c
         if cfg.grad_clip is not None:  # the physics' gradient reaches the controller through the action
             action = clip_cotangent(action, cfg.grad_clip)
         d = d.replace(ctrl=action)
-        d_new, power = physics(m, d, n_sub, stop=sm.impl == "jax", unroll=cfg.unroll_substeps)
-        d_new, finite = keep_finite(d_new, d, sm.impl == "warp")
+        d_new, power = physics(m, d, n_sub, detach=sm.engine.detach, unroll=cfg.unroll_substeps)
+        d_new, finite = sm.engine.keep_finite(d_new, d)
         with jax.named_scope("hx.accumulate"):
             acc = accumulate(acc, cfg, i, n_settle, controller.dt, d.qpos, d_new.qpos, finite, jnp.sum(power) * dt,
                              obs.tactile, terrain.ground_z, slip(sm.robot, d.qpos, d_new.qpos, obs.foot_contact))

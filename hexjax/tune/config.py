@@ -142,17 +142,18 @@ class TuneConfig:
         it = self.solver_iterations
         if it is not None and not (isinstance(it, int) and not isinstance(it, bool) and 1 <= it <= 32):
             raise ValueError(f"tune.solver_iterations={it!r}: must be None or an integer in [1, 32]")
+        from hexjax.sim.engines import GRADIENTS, get_engine
         from hexjax.sim.physics import get_physics
         if self.train_physics is not None:
             if it is not None:
                 raise ValueError(f"tune.train_physics={self.train_physics!r} with tune.solver_iterations={it!r}: "
                                  "the preset sets the solver; give one or the other")
-            if get_physics(self.train_physics).backend == "c":
-                raise ValueError(f"tune.train_physics={self.train_physics!r}: training rollouts are MJX programs; "
-                                 "give a preset on mjx (validated, fast or a .yaml of one's own)")
-        if get_physics(self.eval_physics).backend == "c":
-            raise ValueError(f"tune.eval_physics={self.eval_physics!r}: the evaluation is a kept MJX program; give a "
-                             "preset on mjx (validated, fast or a .yaml of one's own)")
+            if get_engine(get_physics(self.train_physics).engine).lacks({GRADIENTS}):
+                raise ValueError(f"tune.train_physics={self.train_physics!r}: training rollouts take gradients; give "
+                                 "a preset written for an engine that gives them (validated, fast or a .yaml on mjx)")
+        if get_engine(get_physics(self.eval_physics).engine).lacks({GRADIENTS}):
+            raise ValueError(f"tune.eval_physics={self.eval_physics!r}: the evaluation is a kept program of the "
+                             "gradient's engine; give a preset on mjx (validated, fast or a .yaml of one's own)")
         if self.solver_grad not in GRAD_SOLVERS:
             raise ValueError(f"tune.solver_grad={self.solver_grad!r}: use one of {GRAD_SOLVERS}")
         if not isinstance(self.unroll_substeps, bool):

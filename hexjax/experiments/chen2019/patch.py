@@ -18,11 +18,14 @@ from hexjax.control.registry import make_controller
 from hexjax.control.support_gait import SupportPlanController
 from hexjax.perceive.grid import dem_grid
 from hexjax.sim.config import RolloutConfig
-from hexjax.sim.physics import get_physics, traced_backend
+from hexjax.sim.engines import RANGE_SENSORS, TRACES
+from hexjax.sim.physics import pick
 from hexjax.sim.rollout import rollout
 from hexjax.world.dem import dem_for, dem_layout
 from hexjax.world.presets import get_robot, get_terrain
 from hexjax.world.terrain import heightmap, sample
+
+NEEDS = frozenset({TRACES})  # what this experiment needs of its engine: the walks' traces (the runner picks the engine once)
 
 
 def patch_spec(width: float = 0.8, taper: float = 0.1):
@@ -72,9 +75,9 @@ def run_chen2019(n: int = 16, seed: int = 0, robot: str = "chen2019", duration: 
         raise ValueError(f"batch n={n!r}: must be an integer >= 1")
     if not (isinstance(duration, (int, float)) and duration > 0):
         raise ValueError(f"duration={duration!r}: must be > 0 s")
-    preset = get_physics(physics)
-    backend = traced_backend(preset, "traces of the walks (plots, the support planner's records)")
-    phys = preset.config(kind="waves") if preset.slots_per_leg is not None else \
+    # the plots and the support planner's records read the walks' traces
+    preset = pick(physics, needs=NEEDS | ({RANGE_SENSORS} if sensor is not None else set()))
+    phys = preset.config(kind="waves") if preset.settings.slots_per_leg is not None else \
         dataclasses.replace(preset.config(kind="waves"), slots_per_leg=CHEN_SLOTS)
     rb = get_robot(robot)
     spec = patch_spec()
@@ -105,7 +108,7 @@ def run_chen2019(n: int = 16, seed: int = 0, robot: str = "chen2019", duration: 
                                 "taper": spec.taper, "peak_range": list(spec.height_range), "cell": spec.cell},
                       "torso_height": float(pp.height[0]), "physics_iterations": phys.iterations,
                       "slots_per_leg": phys.slots_per_leg, "device": str(jax.devices()[0].platform)},
-           "physics": preset.record(backend),
+           "physics": preset.record(),
            "_records": {}, "_terrain": terrain}
     if sensor is not None:
         res["config"].update(sensor=dataclasses.asdict(sensor), perceive_every=perceive_every)
@@ -118,7 +121,7 @@ def run_chen2019(n: int = 16, seed: int = 0, robot: str = "chen2019", duration: 
             prm = jax.tree_util.tree_map(sl, params) if batched else params
             s, st = rollout(rb, jax.tree_util.tree_map(sl, terrain), ctrl, prm, duration, jax.random.fold_in(k_r, i),
                             physics=phys, config=cfg, params_batched=batched, mesh=mesh, stats=True,
-                            backend=backend)
+                            engine=preset.engine.name)
             comp += st.compile_s
             parts.append(jax.device_get(s))
         row = _summarise(parts, far)

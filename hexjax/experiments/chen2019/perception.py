@@ -13,8 +13,11 @@ from typing import Dict
 
 import numpy as np
 
+from hexjax.sim.engines import RANGE_SENSORS, TRACES
 from hexjax.experiments.chen2019 import patch
 from hexjax.perceive.sensors import get_sensor
+
+NEEDS = frozenset({RANGE_SENSORS, TRACES})  # the walks' traces and the torso's range sensor (the runner picks the engine once)
 
 
 def run(o, entry) -> Dict:

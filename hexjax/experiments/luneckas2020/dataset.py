@@ -17,7 +17,10 @@ import numpy as np
 
 from hexjax.experiments.luneckas2020 import error_model as em
 from hexjax.experiments.luneckas2020.walks import errors_from, readout_index, robot_width, simulate_gait
+from hexjax.sim.engines import TRACES
 from hexjax.world.presets import get_robot
+
+NEEDS = frozenset({TRACES})  # the walks' traces (the runner picks the engine once)
 
 SAMPLE_M = 0.05
 FEATURES = ("x", "y", "sin_dalpha", "one_minus_cos_dalpha", "planned_x", "planned_left", "tripod", "method")
@@ -118,11 +121,11 @@ def split_by_terrain(data, held_out_frac: float = 0.2, seed: int = 0):
 
 # The experiment (configs/experiments/luneckas2020-dataset.yaml) ---------------------------------------------
 def run(o, entry) -> Dict:
-    from hexjax.sim.physics import get_physics
+    from hexjax.sim.physics import pick
     data = make_dataset(n=o.n, seed=o.seed, gaits=o.gaits, distance=o.distance, physics=o.physics)
     save_dataset(o.out, data, {"source": "hexjax experiment luneckas2020-dataset", "n": o.n, "seed": o.seed,
                                "gaits": list(o.gaits), "distance_m": o.distance,
-                               "physics": get_physics(o.physics).record()})
+                               "physics": pick(o.physics, needs={TRACES}).record()})
     return {"sequences": int(len(data["Y"])), "steps": int(data["X"].shape[1]), "out": o.out}
 
 

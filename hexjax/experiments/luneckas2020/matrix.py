@@ -34,9 +34,12 @@ from hexjax.experiments.luneckas2020.walks import (DISTANCES, GAITS, METHODS, ST
                                                    torso_strikes)
 from hexjax.experiments.runner import read_partial, write_partial
 from hexjax.sim.metrics import error_stats
-from hexjax.sim.physics import get_physics
+from hexjax.sim.engines import TRACES
+from hexjax.sim.physics import pick
 from hexjax.world.presets import get_robot
 from hexjax.world.terrain import LUNECKAS2020_CATEGORIES
+
+NEEDS = frozenset({TRACES})  # the walks' traces (the runner picks the engine once)
 
 
 def _cell(dx, dy, da, fell, stuck, nan, d):
@@ -72,7 +75,8 @@ def run_luneckas2020(n: int = 16, seed: int = 0, gaits: Sequence[str] = GAITS,
                       f"over the last {STUCK_WINDOW:.0%} of the path", "backend": jax.default_backend(),
                       "paper_relative_error_pct": {"without": 24.0, "with": 12.0}},
            "calibration": {}, "cells": {}, "model": {}, "timing": {}}
-    res["physics"] = get_physics(physics).record()  # a resumed run keeps only gaits made on the same physics
+    # the walks' physics (`walks.py`): a resumed run keeps only gaits made on the same physics
+    res["physics"] = pick(physics, needs={TRACES}).record()
     # what a kept gait depends on; "readouts" names the per-run figures a kept gait carries (a gait kept before
     # the torso-strike and slip readouts were added is run again)
     key = json.dumps({k: res["config"][k] for k in ("n", "seed", "distances_m")} | {"physics": res["physics"],

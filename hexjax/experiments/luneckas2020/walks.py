@@ -16,7 +16,8 @@ from hexjax.control.tactile import TactileGaitController, overcome_height
 from hexjax.experiments.runner import step_bar
 from hexjax.sim.metrics import pose_errors
 from hexjax.sim.config import RolloutConfig
-from hexjax.sim.physics import get_physics, shared_config
+from hexjax.sim.engines import TRACES
+from hexjax.sim.physics import pick, shared_config
 from hexjax.sim.rollout import rollout
 from hexjax.world.presets import get_robot, get_terrain
 from hexjax.world.terrain import LUNECKAS2020_CATEGORIES, pad_terrain, sample
@@ -86,7 +87,7 @@ def simulate_gait(gait: str, n: int, seed: int = 0, distance: float = 2.0,
 
     Returns (ctrl, params, terrain, summary, groups, RolloutStats) with groups a list of (category, method,
     slice)."""
-    preset = get_physics(physics)
+    preset = pick(physics, needs={TRACES})
     robot = get_robot(robot_name)
     specs = {c: get_terrain(c, length=distance + 0.3) for c in categories}
     m = max([s.max_boxes for s in specs.values()] + [1])
@@ -111,5 +112,5 @@ def simulate_gait(gait: str, n: int, seed: int = 0, distance: float = 2.0,
                   RolloutConfig(record=True), enabled=progress) as cfg:
         s, st = rollout(robot, terrain, ctrl, params, dur, jax.random.fold_in(base, 1000), params_batched=True,
                         config=cfg, stats=True, physics=shared_config(preset, specs.values()),
-                        backend=preset.backend)
+                        engine=preset.engine.name)
     return ctrl, params, terrain, s, groups, st

@@ -24,11 +24,14 @@ from hexjax.plan import avoid
 from hexjax.plan.avoid import AvoidConfig
 from hexjax.plan.fields import Fields, small_fields, straight_line_blocked
 from hexjax.sim.config import RolloutConfig
-from hexjax.sim.physics import get_physics, traced_backend
+from hexjax.sim.engines import RANGE_SENSORS, TRACES
+from hexjax.sim.physics import pick
 from hexjax.sim.rollout import rollout
 from hexjax.world.presets import get_robot
 from hexjax.world.robot import RobotSpec, hip_positions
 from hexjax.world.terrain import Terrain
+
+NEEDS = frozenset({TRACES})  # what this experiment needs of its engine: the walks' traces (the runner picks the engine once)
 
 OBSTACLE_HEIGHT = 0.25  # m: taller than the Luneckas 2020 robot (torso top ~0.12 m)
 
@@ -123,10 +126,10 @@ def run_closed_loop(n: int = 32, seed: int = 0, robot: str = "luneckas2020", n_T
     dict; the `_`-keys hold arrays for plots. A field counts as a closed-loop success when the robot stopped
     within goal_tol of the target, touched no obstacle, did not fall and stayed finite. physics: a physics preset
     on MJX (name, .yaml path or `PhysicsPreset`; the touch test reads MJX's foot traces)."""
-    preset = get_physics(physics)
-    backend = traced_backend(preset, "foot traces (the touch test)")
     rb = get_robot(robot)
     ctrl = controller or make_controller("avoid", rb, avoid=AvoidConfig(n_T=n_T, max_cycles=40))
+    # the touch test reads the foot traces; a perceiving controller casts rays
+    preset = pick(physics, needs=NEEDS | ({RANGE_SENSORS} if getattr(ctrl, "sensor", None) is not None else set()))
     g, ap = field_setup(ctrl)
     _, k_box, k_roll = seed_keys(seed)
     if fields is None:
@@ -157,7 +160,7 @@ def run_closed_loop(n: int = 32, seed: int = 0, robot: str = "luneckas2020", n_T
         sl = lambda x: x[i:i + chunk]
         s, st = rollout(rb, jax.tree_util.tree_map(sl, terrain), ctrl, jax.tree_util.tree_map(sl, params), duration,
                         jax.random.fold_in(k_roll, i), config=cfg, params_batched=True, mesh=mesh, stats=True,
-                        physics=preset.config(kind="obstacles"), backend=backend)
+                        physics=preset.config(kind="obstacles"), engine=preset.engine.name)
         compile_s += st.compile_s
         touched = touches(rb, s.trace, s.foot_trace, jax.tree_util.tree_map(sl, terrain))
         outs.append((jax.device_get(s), touched))

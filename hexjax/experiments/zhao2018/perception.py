@@ -14,6 +14,7 @@ import jax
 import numpy as np
 from tqdm.auto import tqdm
 
+from hexjax.sim.engines import RANGE_SENSORS, TRACES
 from hexjax.control.perceive_gait import PerceivingAvoidGait, map_bounds
 from hexjax.control.registry import make_controller
 from hexjax.experiments.zhao2018.closed_loop import field_setup, run_closed_loop, seeded_fields
@@ -21,6 +22,8 @@ from hexjax.perceive.grid import GridMap, GridSpec
 from hexjax.perceive.sensors import get_sensor
 from hexjax.plan.avoid import AvoidConfig
 from hexjax.world.presets import get_robot
+
+NEEDS = frozenset({RANGE_SENSORS, TRACES})  # the walks' traces and the torso's range sensor (the runner picks the engine once)
 
 MODES = ("privileged", "perceived", "blind")
 

@@ -1,6 +1,6 @@
 """What `hexjax.sim.model` reads of MJX's and MuJoCo Warp's private code: the order of MJX's contact slots, the
-contact forces decoded from the solver's rows, and Warp's overflow flags. Each relies on private names of the
-pinned mujoco-mjx (`hexjax.private_reach`)."""
+contact forces decoded from the solver's rows, and Warp's overflow flags (its prints off, its per-world bitmask
+read). Each relies on private names of the pinned mujoco-mjx (`hexjax.private_reach`)."""
 
 from __future__ import annotations
 
@@ -23,9 +23,22 @@ def contact_forces(m, d):
     return mjx._src.support.contact_force_dim(m, d, 3)
 
 
-def warn_overflow_but_iterations(mjx_model):
-    """A MuJoCo Warp model that keeps Warp's overflow messages for contacts and constraint rows and drops the one
-    for the iteration limit (hexjax runs a fixed, small number of Newton iterations on purpose)."""
-    from mujoco.mjx.third_party.mujoco_warp._src.types import OverflowType
-    warn = int(mjx_model.opt._impl.warn_overflow) & ~int(OverflowType.ITERATIONS)
-    return mjx_model.tree_replace({"opt._impl.warn_overflow": warn})
+def quiet_overflow(mjx_model):
+    """A MuJoCo Warp model whose kernels print nothing when a world overflows (a limit or a pool); the flags are
+    still set in each world's `overflow` (`overflow_flags`). Read when the kernels are built, so set before the
+    first step is traced."""
+    return mjx_model.tree_replace({"opt._impl.warn_overflow": 0})
+
+
+# MuJoCo Warp's `OverflowType` bits for the Newton loop's and the line search's limits (its types.py; importing it
+# loads Warp, so they are written here and tests/test_backends.py holds them against it)
+OVERFLOW_ITERATIONS, OVERFLOW_LS_ITERATIONS = 1 << 9, 1 << 10
+
+
+def overflow_flags(d):
+    """One env's MuJoCo Warp overflow bitmask (int32 ()): every flag its world raised since the Data was made
+    (the flags stay set from step to step)."""
+    import jax
+    import jax.numpy as jnp
+    f = jnp.asarray(d._impl.overflow, jnp.int32).reshape(-1)
+    return jax.lax.reduce(f, jnp.int32(0), jax.lax.bitwise_or, (0,))

@@ -1,7 +1,7 @@
-"""MuJoCo C backend of the rollout: the same robot, terrain, controller and summary as the MJX rollout, with
+"""MuJoCo C: the reference engine, float64 on the host's cores. The same robot, terrain, controller and summary as the MJX rollout, with
 the physics stepped by MuJoCo C on all host cores (`mujoco.rollout`, one thread pool).
 
-How it differs from the MJX path, and why:
+How it differs from the MJX engine, and why:
 - Terrain. MJX checks a fixed list of geom pairs, so hexjax moves a few slot boxes under each foot every
   control step. MuJoCo C has a broadphase, so here every terrain box is a geom of its own (`terrain_<j>`,
   `build_mjcf(..., terrain_boxes=M)`) and each env gets its own `MjModel` with its boxes in place. The contact
@@ -14,8 +14,10 @@ How it differs from the MJX path, and why:
 - The start heading, the controller phase (settle posture, perturbed sensing and action) and the summary are the
   MJX control step's own functions (`hexjax.sim.step`: `start_yaw`, `controller_phase`, `accumulate`,
   `summarise`), in float32 (MuJoCo C's state is float64).
-- Forward only (no gradients). Of the per-step traces only the torso's (`Summary.trace`: x, y, z, yaw) is kept
-  (`RolloutConfig.record`). At the very first control step the sensors read zero (no step has run yet); with the
+- Forward only (no gradients), on the host alone (no device mesh, no range sensors: those are cast in the MJX
+  control step). With `RolloutConfig.record` every per-step trace the MJX engine keeps is kept as well: the
+  torso's pose, the feet (MuJoCo's foot-site position sensors), the controller's trace, the joints, the foot
+  forces and tactile pads the controller read. At the very first control step the sensors read zero (no step has run yet); with the
   default settle time that step is a settling step, whose action is fixed.
 """
 
@@ -24,7 +26,6 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
-import os
 import time
 from typing import Optional
 
@@ -37,14 +38,16 @@ from mujoco import rollout as mj_rollout
 from hexjax.sim import perturb
 from hexjax.sim import step as sim_step  # the phase and summarise on the module: tests/test_step.py watches them
 from hexjax.sim.config import PhysicsConfig, RolloutConfig, SensorConfig
+from hexjax.sim.engines.base import TRACES, Engine, host_cores
 from hexjax.sim.mjcf import PARKED_Z, build_mjcf, compile_mjcf, sensor_layout
-from hexjax.sim.model import actuator_forces, obs_from_sensordata
+from hexjax.sim.model import actuator_forces, foot_positions, obs_from_sensordata
 from hexjax.sim.perturb import MIN_FRICTION
 from hexjax.sim.slip import slip
 from hexjax.sim.step import accumulate, init_acc, settle_steps, start_yaw, substeps
-from hexjax.world.robot import RobotSpec
+from hexjax.world.robot import RobotSpec, quat_yaw
 
 _FULL = mujoco.mjtState.mjSTATE_FULLPHYSICS
+PARKED_SPACING = 0.05  # m between parked boxes (0.01 m half sizes): no two overlap
 
 
 @dataclasses.dataclass
@@ -84,7 +87,11 @@ def _models(tp: _Template, box_pos, box_half, box_valid, ground_z, pert=None):
     n = box_pos.shape[0]
     while len(tp.pool) < n:
         tp.pool.append(mujoco.MjModel.__copy__(tp.model))
-    pos = np.where(box_valid[..., None], box_pos, np.array([0.0, 0.0, PARKED_Z]))
+    # an env with fewer boxes than the batch's fullest parks the rest below the ground, each apart from the others:
+    # stacked in one place, every parked pair overlapped in the broadphase and was sorted and filtered every step
+    parked = np.stack([PARKED_SPACING * np.arange(box_pos.shape[1]), np.zeros(box_pos.shape[1]),
+                       np.full(box_pos.shape[1], PARKED_Z)], -1)
+    pos = np.where(box_valid[..., None], box_pos, parked)
     half = np.where(box_valid[..., None], box_half, 0.01)
     out = tp.pool[:n]
     for i, mi in enumerate(out):
@@ -141,13 +148,14 @@ def _gains(tp: _Template, mi: mujoco.MjModel, scale) -> None:
 def rollout_c(robot: RobotSpec, terrain, controller, params, n_ctrl: int, keys, *, physics: PhysicsConfig,
               sensors: SensorConfig, config: RolloutConfig, params_batched: bool = False,
               nthread: Optional[int] = None, chunk: int = 8192, progress: bool = False, perturbation=None):
-    """`hexjax.sim.rollout.rollout` with backend='c' (checked there): (the same `Summary`, with no traces;
-    seconds spent compiling the controller step). nthread: MuJoCo threads (default: all cores); chunk: envs
+    """`hexjax.sim.rollout.rollout` on MuJoCo C (checked there): (the same `Summary`; seconds spent compiling
+    the controller step). nthread: MuJoCo threads (default: the cores this
+    process may use, `host_cores`); chunk: envs
     per pass (bounds memory; the controller is compiled once for this size). perturbation: a batched
     `Perturbation`, applied as on the MJX path: its model fields in each env's MjModel, its sensing and action
     effects by `hexjax.sim.perturb` in the controller step. With `config.record` the torso trace (x, y, z, yaw per
-    control step of the walk) is kept; the other traces are MJX's alone."""
-    nthread = int(nthread or os.cpu_count() or 1)
+    control step of the walk) is kept with every other trace of `Summary` (`_traces`)."""
+    nthread = int(nthread or host_cores())
     if nthread < 1:
         raise ValueError(f"nthread={nthread!r}: must be >= 1")
     box_pos, box_half = np.asarray(terrain.box_pos, np.float64), np.asarray(terrain.box_half, np.float64)
@@ -203,7 +211,7 @@ def rollout_c(robot: RobotSpec, terrain, controller, params, n_ctrl: int, keys, 
             sens = np.zeros((chunk, m0.nsensordata))
             st_out = np.empty((chunk, n_sub, tp.nstate))
             sd_out = np.empty((chunk, n_sub, m0.nsensordata))
-            poses = []
+            recs = []
             acc = jax.vmap(init_acc)(jnp.stack([jnp.zeros(chunk), jnp.zeros(chunk), jnp.asarray(yw, jnp.float32)], -1))
             gz = jnp.asarray(ground_z[idx], jnp.float32)
             if c == 0:  # compile the controller step (timed apart, as the MJX rollout's compile is)
@@ -220,8 +228,9 @@ def rollout_c(robot: RobotSpec, terrain, controller, params, n_ctrl: int, keys, 
                         if float(pert.fault_time[e]) <= t_walk < float(pert.fault_time[e]) + controller.dt:
                             _gains(tp, models[e], np.where(np.arange(nu) // 3 == int(pert.fault_leg[e]), 0.0,
                                                            float(pert.kp_scale[e])))
-                cstate, action, pstate, tactile, contact = step_fn(prm, cstate, q, v, sens, state[:, 0], np.int32(i),
-                                                                   ctrl0, pert, pstate)
+                cstate, action, pstate, obs, trace = step_fn(prm, cstate, q, v, sens, state[:, 0], np.int32(i), ctrl0,
+                                                             pert, pstate)
+                tactile, contact = obs.tactile, obs.foot_contact
                 action = np.asarray(action, np.float64)
                 control = np.repeat(action[:, None, :], n_sub, axis=1)
                 pool.rollout(models, datas, state, control, control_spec=mujoco.mjtState.mjSTATE_CTRL,
@@ -234,24 +243,46 @@ def rollout_c(robot: RobotSpec, terrain, controller, params, n_ctrl: int, keys, 
                              (power * dt).astype(np.float32), tactile, gz, contact)
                 state = new_state
                 if config.record and i >= n_settle:
-                    w, x, y, z = new_state[:, 4:8].T
-                    yaw = np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
-                    poses.append(np.concatenate([new_state[:, 1:4], yaw[:, None]], 1))
+                    recs.append((new_state[:, 1:1 + nq].astype(np.float32),
+                                 foot_positions(sd_out[:, -1]).astype(np.float32), trace, obs.foot_force, tactile))
                 sens = np.where(finite[:, None], sd_out[:, -1], sens)
                 if config.progress_every and (i + 1) % config.progress_every == 0:  # as the MJX scan reports
                     sim_step._report_progress(i + 1)
                 if progress:
                     bar.update(1)
-            trace = np.stack(poses, 1).astype(np.float32) if config.record else None
-            outs.append((acc, cstate, state[:, 1:1 + nq].astype(np.float32), trace))
+            outs.append((acc, cstate, state[:, 1:1 + nq].astype(np.float32), _traces(recs) if config.record else {}))
     if progress:
         bar.close()
     cat = lambda *xs: jnp.concatenate(xs)[:b]
     acc = jax.tree_util.tree_map(cat, *[o[0] for o in outs])
     final = jax.tree_util.tree_map(cat, *[o[1] for o in outs])
     q_end = cat(*[o[2] for o in outs])
-    trace = cat(*[o[3] for o in outs]) if config.record else None
-    return sim_step.summarise(acc, q_end, final, trace=trace), compile_s
+    traces = jax.tree_util.tree_map(cat, *[o[3] for o in outs]) if config.record else {}
+    return sim_step.summarise(acc, q_end, final, **traces), compile_s
+
+
+def _traces(recs):
+    """`Summary`'s per-step traces of a chunk (each (n, T, ...)) from its walking steps' records (joint positions
+    after the step, feet after it, the controller's trace, the foot forces and tactile pads it read)."""
+    qpos, feet, ctrl, force, tactile = (jax.tree_util.tree_map(lambda *x: jnp.stack(x, 1), *col) for col in zip(*recs))
+    pose = jnp.concatenate([qpos[..., :3], quat_yaw(qpos[..., 3:7])[..., None]], -1)
+    return dict(trace=pose, foot_trace=feet, ctrl_trace=ctrl, qpos_trace=qpos, force_trace=force,
+                tactile_trace=tactile)
+
+
+@dataclasses.dataclass(frozen=True)
+class MuJoCoC(Engine):
+    """MuJoCo C through `mujoco.rollout` on a thread pool; the controller between control steps in JAX."""
+
+    def rollout(self, robot, terrain, controller, params, n_ctrl, keys, *, physics, sensors, config,
+                params_batched, mesh, nthread, perturbation):
+        out, compile_s = rollout_c(robot, terrain, controller, params, n_ctrl, keys, physics=physics,
+                                   sensors=sensors, config=config, params_batched=params_batched, nthread=nthread,
+                                   perturbation=perturbation)
+        return out, compile_s, "compiled" if compile_s else "process"
+
+
+C_ENGINE = MuJoCoC(name="c", title="MuJoCo C", precision="float64", can=frozenset({TRACES}), hosts=("cpu",), culls=False)
 
 
 @functools.lru_cache(maxsize=16)
@@ -259,13 +290,13 @@ def _controller_fns(controller, sensors: SensorConfig, p_axis, perturbed: bool =
     """Jitted, vmapped controller step of one chunk (from MuJoCo's sensordata through the MJX control step's
     `controller_phase`: the settle posture while settling and, with `perturbed`, the draws' sensing and action
     effects), its init and its settle posture. The step returns (controller state, targets, perturbation state,
-    the true tactile flags, feet in contact)."""
+    the true `Obs`, the controller's trace of the step)."""
     def step(params, cstate, qpos, qvel, sens, t, i, ctrl0, pert, pstate):
         obs = obs_from_sensordata(sensors, qpos.astype(jnp.float32), qvel.astype(jnp.float32),
                                   sens.astype(jnp.float32), t.astype(jnp.float32))
-        cstate, action, pstate, _ = sim_step.controller_phase(controller, sensors, params, cstate, obs, i, n_settle,
-                                                              ctrl0, pert, pstate)
-        return cstate, action, pstate, obs.tactile, obs.foot_contact
+        cstate, action, pstate, seen = sim_step.controller_phase(controller, sensors, params, cstate, obs, i,
+                                                                 n_settle, ctrl0, pert, pstate)
+        return cstate, action, pstate, obs, controller.trace(cstate, seen)
 
     e = 0 if perturbed else None  # the draws and their state: per env, or None
     step_b = jax.jit(jax.vmap(step, in_axes=(p_axis, 0, 0, 0, 0, 0, None, 0, e, e)))
