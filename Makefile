@@ -9,7 +9,7 @@ endif
 VENV := .venv
 BIN := $(VENV)/bin
 
-.PHONY: setup demo test test-core test-grad bench clean
+.PHONY: setup demo test test-core test-grad bench warp clean
 
 $(BIN)/hexjax: pyproject.toml constraints.txt
 	@test -n "$(PY)" || { echo "hexjax needs Python 3.12 (jax 0.11): none found as python3.12, in ~/.pyenv or as python3; run make PY=/path/to/python3.12" >&2; exit 1; }
@@ -47,6 +47,10 @@ test-grad: setup
 
 bench: setup
 	$(BIN)/hexjax bench --json out/bench_cpu.json
+
+# MuJoCo Warp, the certified GPU engine (warp-lang, about 390 MB): a GPU host's evaluations pick it once installed
+warp: setup
+	$(BIN)/python -m pip install -q -c constraints.txt -e '.[warp]'
 
 clean:
 	rm -rf $(VENV) out

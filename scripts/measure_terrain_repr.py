@@ -16,7 +16,8 @@ import numpy as np
 import hexjax  # noqa: F401  (sets the XLA CPU flag)
 from hexjax.sim.config import PhysicsConfig
 from hexjax.sim.mjcf import build_mjcf
-from hexjax.sim.model import batch_model, mjx, sim_model
+from hexjax.sim.engines import sim_model
+from hexjax.sim.model import batch_model, mjx
 from hexjax.world.presets import get_terrain, luneckas2020
 from hexjax.world.terrain import heightmap, sample
 

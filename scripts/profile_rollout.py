@@ -35,7 +35,8 @@ import numpy as np
 
 from hexjax.control.tactile import TactileGaitController
 from hexjax.sim.config import PhysicsConfig, RolloutConfig, SensorConfig
-from hexjax.sim.model import batch_model, mjx, read_obs, sim_model
+from hexjax.sim.engines import sim_model
+from hexjax.sim.model import batch_model, mjx, read_obs
 from hexjax.sim.rollout import rollout
 from hexjax.sim.step import env_view
 from hexjax.world.presets import get_robot, get_terrain

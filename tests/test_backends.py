@@ -11,7 +11,8 @@ import pytest
 from hexjax.control.tactile import TactileGaitController
 from hexjax.sim.config import PhysicsConfig, RolloutConfig, SensorConfig
 from hexjax.sim.mjcf import build_mjcf, sensor_layout
-from hexjax.sim.model import obs_from_sensordata, sim_model
+from hexjax.sim.engines import sim_model
+from hexjax.sim.model import obs_from_sensordata
 from hexjax.sim.rollout import rollout
 from hexjax.world.presets import get_robot, get_terrain
 from hexjax.world.terrain import sample
@@ -197,3 +198,33 @@ def test_backend_bad_input_raises_before_tracing():
         rollout(ROBOT, TERRAIN, CTRL, p, 1.0, jax.random.PRNGKey(0), engine="c", nthread=-1)
     with pytest.raises(ValueError, match="terrain_boxes"):
         build_mjcf(ROBOT, PhysicsConfig(), terrain_boxes=3)
+
+
+def test_mujoco_c_keeps_every_trace_the_mjx_engine_keeps():
+    """With `record`, MuJoCo C returns the traces the paper experiments read (feet from its foot-site position
+    sensors, the controller's own trace, the joints, the forces and pads it read), shaped as MJX's: standing feet
+    rest at the foot radius above the ground, the torso trace is the joints trace's position, and the summed
+    vertical foot force carries the robot."""
+    terr = sample(get_terrain("flat"), jax.random.PRNGKey(2), 2)
+    s = rollout(ROBOT, terr, CTRL, CTRL.default_params(), 0.5, jax.random.PRNGKey(3), engine="c", nthread=1,
+                physics=PhysicsConfig(slots_per_leg=0, torso_slots=0), config=RolloutConfig(record=True))
+    t = 25  # control steps of 0.5 s
+    assert s.foot_trace.shape == (2, t, 6, 3) and s.qpos_trace.shape == (2, t, 25) and s.trace.shape == (2, t, 4)
+    assert s.force_trace.shape == (2, t, 6, 3) and s.tactile_trace.shape == (2, t, 6)
+    np.testing.assert_allclose(np.asarray(s.trace)[..., :3], np.asarray(s.qpos_trace)[..., :3])
+    low = np.asarray(s.foot_trace)[..., 2].min(-1)  # the lowest foot of each step stands
+    np.testing.assert_allclose(low, ROBOT.foot_radius, atol=2e-3)
+    weight = np.asarray(s.force_trace)[:, 0, :, 2].sum(-1)  # the first walking step, the stance of the settle
+    np.testing.assert_allclose(weight, ROBOT.total_mass * 9.81, rtol=0.05)
+    assert jax.tree_util.tree_leaves(s.ctrl_trace)[0].shape[:2] == (2, t)
+
+
+def test_warp_overflow_bits_are_mujoco_warps():
+    """The limit bits hexjax reads from MuJoCo Warp's overflow flags (written in hexjax so that reading them does
+    not load Warp) are those of its `OverflowType`."""
+    _warp()
+    from mujoco.mjx.third_party.mujoco_warp._src.types import OverflowType
+
+    from hexjax.sim.internals.contacts import OVERFLOW_ITERATIONS, OVERFLOW_LS_ITERATIONS
+    assert (OVERFLOW_ITERATIONS, OVERFLOW_LS_ITERATIONS) == (int(OverflowType.ITERATIONS),
+                                                            int(OverflowType.LS_ITERATIONS))

@@ -14,7 +14,7 @@ from jax.flatten_util import ravel_pytree
 from hexjax.sim.compiled import Compiled, arrays_digest
 from hexjax.sim.config import PhysicsConfig, RolloutConfig, physics_for
 from hexjax.sim.internals.forward_mode import check_model
-from hexjax.sim.model import sim_model
+from hexjax.sim.engines import sim_model
 from hexjax.sim.rollout import rollout_function
 from hexjax.tune.config import load_tune_config
 from hexjax.tune.driver import config_digest

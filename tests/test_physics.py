@@ -153,7 +153,8 @@ def test_standing_hexapod_feet_carry_its_weight(preset, engine):
     from mujoco import mjx
 
     from hexjax.sim.config import SensorConfig
-    from hexjax.sim.model import obs_from_sensordata, read_obs, sim_model
+    from hexjax.sim.engines import sim_model
+    from hexjax.sim.model import obs_from_sensordata, read_obs
     _engine(engine)
     robot = get_robot("luneckas2020")
     cfg = get_physics(preset).config(kind="flat")

@@ -43,8 +43,10 @@ def test_every_file_that_reaches_into_a_private_module_is_listed():
 
 def test_mjx_internals_are_reached_from_one_package_only():
     """Every file that patches or reads MJX's private modules is in hexjax/sim/internals/, and the solve of every
-    rollout and of the windowed gradient is traced under its one context (`solver_context`)."""
+    MJX-family rollout (`hexjax.sim.engines.mjx`) and of the windowed gradient is traced under its one context
+    (`solver_context`)."""
     outside = [p for p in USERS["mujoco-mjx"] if not p.startswith("hexjax/sim/internals/")]
     assert not outside, f"reach into MJX's private modules from outside hexjax/sim/internals/: {outside}"
-    from hexjax.sim import internals, rollout, windows
-    assert rollout.solver_context is internals.solver_context is windows.solver_context
+    from hexjax.sim import internals, windows
+    from hexjax.sim.engines import mjx
+    assert mjx.solver_context is internals.solver_context is windows.solver_context

@@ -10,7 +10,7 @@ import pytest
 
 from hexjax.render import render_env, write_video
 from hexjax.sim.config import PhysicsConfig, physics_for
-from hexjax.sim.model import sim_model
+from hexjax.sim.engines import sim_model
 from hexjax.world.presets import get_robot
 from hexjax.world.terrain import Terrain
 

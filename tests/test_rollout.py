@@ -12,10 +12,10 @@ from hexjax.control.gait import GaitController
 from hexjax.sim.metrics import goal_errors
 from hexjax.sim.compiled import Compiled
 from hexjax.sim.config import PhysicsConfig, RolloutConfig, SensorConfig
-from hexjax.sim.internals.contacts import contact_geoms
-from hexjax.sim.model import SimModel, mjx
 from hexjax.sim.engines import get_engine
 from hexjax.sim.engines.mjx import compiled_rollout
+from hexjax.sim.internals.contacts import contact_geoms
+from hexjax.sim.model import SimModel, mjx
 from hexjax.sim.rollout import make_mesh, rollout
 from hexjax.sim.step import control_steps
 from hexjax.world.presets import get_terrain, luneckas2020
@@ -124,7 +124,7 @@ def test_per_env_keys_are_used_env_for_env():
 
 
 def test_contact_map_matches_mjx_forward():
-    sm = SimModel(luneckas2020(), PhysicsConfig(slots_per_leg=1, torso_slots=1))
+    sm = SimModel(luneckas2020(), PhysicsConfig(slots_per_leg=1, torso_slots=1), get_engine("mjx"))
     d = mjx.make_data(sm.mj_model)
     # kept on disk: a plain `jax.jit`'s persistent-cache key can change with what the worker traced before
     fwd = Compiled(jax.jit(mjx.forward), static=("test_rollout/forward", sm.robot, sm.physics))

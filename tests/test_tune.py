@@ -236,7 +236,7 @@ def test_cli_tune_rejects_bad_configs(capsys):
                       (["backward=sideways"], "tune.backward='sideways'"),
                       (["backward=parallel", "estimator=hybrid"], "tune.backward='parallel' with tune.estimator"),
                       (["train_physics=validated", "solver_iterations=4"], "give one or the other"),
-                      (["train_physics=reference"], "training rollouts are MJX programs"),
+                      (["train_physics=reference"], "training rollouts take gradients"),
                       (["steps"], "use key=value")):
         rc = main(["tune", "--config", "tactile_tripod"] + sum([["--set", s] for s in sets], []))
         assert rc == 2

@@ -10,7 +10,7 @@ import pytest
 from hexjax.sim.internals import implicit
 from hexjax.sim.compiled import Compiled, arrays_digest
 from hexjax.sim.config import RolloutConfig, physics_for
-from hexjax.sim.model import sim_model
+from hexjax.sim.engines import sim_model
 from hexjax.sim.rollout import rollout_function
 from hexjax.sim.step import physics, stop_derived
 from hexjax.sim.windows import windowed_value_and_grad

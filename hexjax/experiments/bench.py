@@ -17,7 +17,8 @@ from hexjax.control.registry import CONTROLLERS, make_controller
 from hexjax.sim.config import PhysicsConfig, RolloutConfig
 from hexjax.sim.physics import get_physics, timed_settings
 from hexjax.sim.mjcf import compile_mjcf
-from hexjax.sim.model import batch_model, sim_model
+from hexjax.sim.engines import sim_model
+from hexjax.sim.model import batch_model
 from hexjax.sim.engines import MESH, NAMES, get_engine, host_cores
 from hexjax.sim.engines.warp import overflow_counts, overflow_line
 from hexjax.sim.rollout import make_mesh, rollout

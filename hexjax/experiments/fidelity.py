@@ -365,8 +365,7 @@ def run(o, entry) -> Dict:
     def work(side):
         preset = sides[side]
         # an engine that steps on the host's cores keeps its controller steps on the host too, off the accelerator
-        host = preset.engine.hosts == ("cpu",)
-        ctx = jax.default_device(jax.devices("cpu")[0]) if host else contextlib.nullcontext()
+        ctx = jax.default_device(jax.devices("cpu")[0]) if preset.engine.host_only else contextlib.nullcontext()
         with ctx:
             for label in todo[side]:
                 if f"{label}|{pkey[side]}" in done:  # the other side ran the same physics
@@ -386,7 +385,7 @@ def run(o, entry) -> Dict:
                     bar.update(1)
 
     try:
-        on_host = [sides[s].engine.hosts == ("cpu",) for s in ("a", "b")]
+        on_host = [sides[s].engine.host_only for s in ("a", "b")]
         if on_host[0] != on_host[1] and jax.default_backend() != "cpu":
             # an engine on the host's cores beside one on the accelerator, each side in its own thread
             with concurrent.futures.ThreadPoolExecutor(2) as pool:

@@ -38,7 +38,8 @@ with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.St
 
 from hexjax.control.gait import GaitController, GaitState
 from hexjax.sim.config import PhysicsConfig, RolloutConfig, SensorConfig, physics_for
-from hexjax.sim.model import mjx, read_obs, sim_model
+from hexjax.sim.engines import sim_model
+from hexjax.sim.model import mjx, read_obs
 from hexjax.sim.perturb import pair_friction_with
 from hexjax.sim.step import env_view, fall_state, physics, substeps
 from hexjax.world.presets import get_robot, get_terrain

@@ -6,6 +6,7 @@ model     MjModel / mjx.Model, per-env terrain slots, sensor readings (Obs)
 step      THE control step: env view, controller, physics substeps, summary accumulators
 grad      gradient truncation and bounds of the control step
 compiled  ahead-of-time compiled rollouts and their compile time
-rollout   rollout(): scan, vmap, jit, sharding; backends
-backends  mujoco_c: the same control step with MuJoCo C physics on host threads
+physics   presets and the one physics value a command runs (`pick`: settings + engine)
+rollout   rollout(): checks a call and dispatches it to its engine
+engines   mjx, warp, c: one file an engine behind one protocol, each saying what it can do
 """

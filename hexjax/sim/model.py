@@ -54,13 +54,11 @@ class Obs:
 class SimModel:
     """MuJoCo / MJX models of one robot with terrain slots, plus static index maps. Built once on the host.
 
-    engine: an MJX-family engine of `hexjax.sim.engines` (its name or the engine): 'mjx' (MJX in JAX; the
-    default) or 'warp' (MuJoCo Warp kernels through MJX), which puts the model on the device and whose model also
-    declares MuJoCo's contact sensors, read by its observations (`obs_from_sensordata`)."""
+    engine: an MJX-family engine of `hexjax.sim.engines` (`hexjax.sim.engines.sim_model` takes its name): MJX
+    in JAX or MuJoCo Warp's kernels through MJX, which puts the model on the device and whose model may declare
+    MuJoCo's contact sensors, read by its observations (`obs_from_sensordata`)."""
 
-    def __init__(self, robot: RobotSpec, physics: PhysicsConfig, engine="mjx"):
-        from hexjax.sim.engines import get_engine
-        engine = get_engine(engine)
+    def __init__(self, robot: RobotSpec, physics: PhysicsConfig, engine):
         if not hasattr(engine, "put_model"):
             raise ValueError(f"engine={engine.name!r}: SimModel is the MJX family's model (mjx, warp)")
         physics.validate()
@@ -143,14 +141,10 @@ class SimModel:
         return d.replace(qpos=qpos, ctrl=jnp.asarray(self.ctrl0))
 
 
-def sim_model(robot: RobotSpec, physics: PhysicsConfig, engine="mjx") -> SimModel:
-    """Cached `SimModel` (specs and engines are frozen dataclasses, so they key the cache)."""
-    from hexjax.sim.engines import get_engine
-    return _sim_model(robot, physics, get_engine(engine))
-
-
 @functools.lru_cache(maxsize=16)
-def _sim_model(robot: RobotSpec, physics: PhysicsConfig, engine) -> SimModel:
+def built(robot: RobotSpec, physics: PhysicsConfig, engine) -> SimModel:
+    """Cached `SimModel` of an engine (specs and engines are frozen dataclasses, so they key the cache);
+    `hexjax.sim.engines.sim_model` takes the engine's name."""
     return SimModel(robot, physics, engine)
 
 

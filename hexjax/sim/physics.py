@@ -180,7 +180,7 @@ def pick(preset=None, engine: Optional[str] = None, needs=(), platform: Optional
     from hexjax.sim.engines import ENGINES, get_engine, host_kind
     if isinstance(preset, Physics):
         lacks = preset.engine.lacks(needs)
-        if (engine is None or engine == preset.engine.name) and not lacks:
+        if (engine is None or get_engine(engine) is preset.engine) and not lacks:
             return preset
         preset = preset.preset
     p = get_physics(preset)

@@ -38,7 +38,7 @@ import numpy as np
 
 from hexjax.sim.internals import implicit, solver_context
 from hexjax.sim.config import PhysicsConfig, RolloutConfig, SensorConfig
-from hexjax.sim.model import sim_model
+from hexjax.sim.engines import sim_model
 from hexjax.sim.rollout import check_static
 from hexjax.sim.step import GRAD_FIELDS, make_control_step, make_env_start, settle_steps, summarise
 
@@ -107,7 +107,7 @@ def windowed_value_and_grad(robot, controller, duration: float, loss, *, physics
     if config.solver_grad not in ("implicit", "unrolled") and physics.iterations != 1:
         raise ValueError(f"rollout.solver_grad={config.solver_grad!r} with physics.iterations={physics.iterations}: "
                          "reverse mode needs 'implicit' or 'unrolled'")
-    sm = sim_model(robot, physics, "jax")
+    sm = sim_model(robot, physics, "mjx")
     n_settle = settle_steps(config, controller.dt)
     t_all = n_settle + n_ctrl
     w = config.grad_window or t_all

@@ -16,6 +16,7 @@ from hexjax.sim.engines.base import CAPABILITIES, GRADIENTS, MESH, RANGE_SENSORS
 from hexjax.sim.engines.c import C_ENGINE
 from hexjax.sim.engines.mjx import MJX_ENGINE
 from hexjax.sim.engines.warp import WARP_ENGINE
+from hexjax.sim.model import built
 
 ENGINES: Dict[str, Engine] = {e.name: e for e in (MJX_ENGINE, WARP_ENGINE, C_ENGINE)}
 NAMES = tuple(ENGINES)
@@ -24,7 +25,7 @@ NAMES = tuple(ENGINES)
 ORDER = {"cpu": ("c", "mjx", "warp"), "gpu": ("warp", "mjx", "c")}
 
 __all__ = ["CAPABILITIES", "ENGINES", "Engine", "GRADIENTS", "MESH", "NAMES", "ORDER", "RANGE_SENSORS", "TRACES",
-           "get_engine", "host_cores", "host_kind"]
+           "get_engine", "host_cores", "host_kind", "sim_model"]
 
 
 def get_engine(name) -> Engine:
@@ -34,6 +35,12 @@ def get_engine(name) -> Engine:
     if name not in ENGINES:
         raise ValueError(f"engine={name!r}: use one of {', '.join(NAMES)}")
     return ENGINES[name]
+
+
+def sim_model(robot, physics, engine="mjx"):
+    """The cached `hexjax.sim.model.SimModel` of `robot` under `physics` (a `PhysicsConfig`) for an MJX-family
+    engine (`engine`: its name or the engine; default MJX)."""
+    return built(robot, physics, get_engine(engine))
 
 
 def host_kind(platform=None) -> str:

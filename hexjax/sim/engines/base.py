@@ -63,6 +63,11 @@ class Engine:
     package: Optional[str] = None
     install: str = ""
 
+    @property
+    def host_only(self) -> bool:
+        """Whether it steps on the host's cores alone (its controller steps then stay on the host too)."""
+        return "gpu" not in self.hosts
+
     def available(self) -> bool:
         """Whether this process can step physics on this engine (its package is importable)."""
         return self.package is None or importlib.util.find_spec(self.package) is not None

@@ -26,7 +26,7 @@ from hexjax.sim.compiled import Compiled
 from hexjax.sim.config import PhysicsConfig, RolloutConfig, SensorConfig
 from hexjax.sim.engines.base import GRADIENTS, MESH, RANGE_SENSORS, TRACES, Engine
 from hexjax.sim.internals import REMAT_POLICY, check_model, solver_context
-from hexjax.sim.model import read_obs
+from hexjax.sim.model import built, read_obs
 from hexjax.sim.step import make_control_step, make_env_start, settle_steps, stop_derived
 from hexjax.world.robot import RobotSpec
 
@@ -56,8 +56,7 @@ class MJX(Engine):
         return m.replace(geom_pos=geom_pos, geom_size=geom_size)
 
     def prepare(self, robot, physics) -> None:
-        from hexjax.sim.model import sim_model
-        sim_model(robot, physics, self)
+        built(robot, physics, self)
 
     # Step ----------------------------------------------------------------------------------------------------
     def observe(self, sm, sensors: SensorConfig, terrain, m, d, slot_pos):
@@ -120,8 +119,7 @@ def compiled_rollout(engine: MJX, robot: RobotSpec, physics: PhysicsConfig, sens
     is the cost. The program takes (model, params, terrain, keys, data template or None, perturbation or None).
     With a `mesh`, each device runs the vmapped rollout of its own envs (`jax.shard_map` over the 'batch'
     axis)."""
-    from hexjax.sim.model import sim_model
-    sm = sim_model(robot, physics, engine)
+    sm = built(robot, physics, engine)
     if cfg.grad_mode == "forward":
         check_model(sm.mjx_model)  # what forward mode's rule handles, before tracing
     n_settle = settle_steps(cfg, controller.dt)
