@@ -31,7 +31,8 @@ def test_evaluate_obstacles_lose_distance(tmp_path, default_xla_env):
     assert obst["advance_m"] < flat["advance_m"] - 0.05  # lost > 5 cm of the metre on average
     assert obst["abs_dx_cm"] > flat["abs_dx_cm"]
     assert np.isfinite(obst["env_steps_per_s"]) and obst["env_steps_per_s"] > 0
-    assert "engine: c (MuJoCo C, certified; the fastest certified engine on this CPU-only host); reference's settings" in table
+    assert ("engine: c (MuJoCo C, certified; the fastest certified engine on this CPU-only host); reference's "
+            "settings") in table
     engine = res["physics"]["engine"]
     assert res["physics"]["name"] == "validated" and res["physics"]["iterations"] == 100
     assert (engine, res["physics"]["settings_from"]) == ("c", "reference") and res["config"]["engine"] == "c"

@@ -18,12 +18,22 @@ def test_version_answers_without_running_anything():
 
 def test_a_batch_beyond_the_machine_fails_in_one_line_before_any_work(capsys, monkeypatch):
     from hexjax.experiments import runner
-    monkeypatch.setattr(runner, "available_bytes", lambda: 24 * 2**30)
+    monkeypatch.setattr(runner, "available_bytes", lambda host=False: 24 * 2**30)
     assert main(["evaluate", "--batch", "100000000"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--batch=100000000" in err[0] and "more than the 24 GiB here" in err[0], err
     # a batch that fits is not questioned by the estimate
     runner.check_batch_memory(type("O", (), {"batch": 16})())
+    # once the engine is chosen, its own measured figure sizes the batch and names the largest that fits
+    from hexjax.sim.engines import get_engine
+    warp = get_engine("warp")
+    monkeypatch.setattr(runner, "available_bytes", lambda host=False: 80 * 2**30)
+    with pytest.raises(ValueError) as err:
+        runner.check_batch_memory(type("O", (), {"batch": 10**6})(), warp)
+    fits = 80 * 2**30 // int(runner.HEADROOM * warp.bytes_per_env)
+    said = str(err.value)
+    assert "on MuJoCo Warp needs about" in said and f"the largest batch that fits is {fits:,}" in said
+    runner.check_batch_memory(type("O", (), {"batch": fits})(), warp)
 
 
 def test_lengths_on_the_command_line_are_in_metres():

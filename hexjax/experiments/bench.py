@@ -175,8 +175,8 @@ def bench(robot: str = "luneckas2020", batches: Sequence[int] = (16, 64, 256), s
 
 
 def format_bench(res: Dict) -> str:
-    head = (f"{'physics':<10} {'engine':<7} {'terrain':<11} {'ctrl':<7} {'pairs':>5} {'batch':>7} {'compile s':>9} {'env-steps/s':>12} "
-            f"{'MuJoCo C 1thr':>13} {'ratio':>6} {'vs gait':>8} {'tactile':>8}")
+    head = (f"{'physics':<10} {'engine':<7} {'terrain':<11} {'ctrl':<7} {'pairs':>5} {'batch':>7} {'compile s':>9} "
+            f"{'env-steps/s':>12} {'MuJoCo C 1thr':>13} {'ratio':>6} {'vs gait':>8} {'tactile':>8}")
     lines = [f"{res['device']} ({res['backend']}, {res['n_devices']} device(s), {res.get('devices_used', 1)} used), {res['sim_seconds']} s simulated, "
              f"robot {res['robot']}", head]
     for r in res["rows"]:

@@ -26,7 +26,8 @@ def report(res: Dict) -> str:
             + f" {'succ %':>7} {'95 % CI':>13} {'goal err cm':>11} {'fall %':>7} {'energy J':>9} {'NaN':>4}")
     lines = [f"\nrobustness sweep: {c['batch']} envs per cell on {_devices(c)}, "
              f"{c['distance_m']:g} m on {c['terrain']}, "
-             f"{res['physics']['name']} physics ({c.get('engine', c.get('physics_backend'))}), seed {c['seed']}", head, "-" * len(head)]
+             f"{res['physics']['name']} physics ({c.get('engine', c.get('physics_backend'))}), seed {c['seed']}", head,
+             "-" * len(head)]
     for r in res["cells"]:
         lo, hi = r["success_ci95"]
         lines.append(f"{r['controller']:<10} " + " ".join(f"{r[n]:16g}" for n in names)

@@ -97,39 +97,44 @@ def write_json(path: str, obj) -> None:
         json.dump({k: v for k, v in obj.items() if not str(k).startswith("_")}, f, indent=2, default=float)
 
 
-# an upper bound of one env's rollout memory: its MJX data (about 48 KB on the obstacle terrains) ten times over,
-# for the constraint solver's temporaries, the scan's carries and the terrain's boxes
+# the headroom on an engine's measured bytes per env (`Engine.bytes_per_env`): traces, the terrain's boxes, the
+# allocator's rounding; and the estimate when no engine is chosen yet
+HEADROOM = 2.0
 PER_ENV_BYTES = 512 * 1024
 
 
-def available_bytes() -> int:
-    """Memory the batch can use: every local accelerator's limit, or the host's RAM on a CPU."""
+def available_bytes(host: bool = False) -> int:
+    """Memory the batch can use: every local accelerator's limit, or the host's RAM on a CPU or for an engine
+    that runs on the host (`host`)."""
     import jax
     devs = jax.local_devices()
-    if devs[0].platform != "cpu":
+    if devs[0].platform != "cpu" and not host:
         return sum(int((d.memory_stats() or {}).get("bytes_limit", 0)) for d in devs)
     return os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
 
 
-def check_batch_memory(o: types.SimpleNamespace) -> None:
-    """One ValueError line when `--batch` (envs a row or cell) cannot fit the device by a generous estimate,
-    before terrains are drawn or anything compiles."""
+def check_batch_memory(o: types.SimpleNamespace, engine=None) -> None:
+    """One ValueError line, naming the largest batch that fits, when `--batch` (envs a row or cell) cannot fit
+    where `engine` runs (its measured bytes per env with `HEADROOM`; without an engine a generous
+    `PER_ENV_BYTES`), before terrains are drawn or anything compiles."""
     batch = getattr(o, "batch", None)
-    if not isinstance(batch, int) or batch * PER_ENV_BYTES < 2**30:  # under 1 GB: no question
+    per_env = PER_ENV_BYTES if engine is None else int(HEADROOM * engine.bytes_per_env)
+    if not isinstance(batch, int) or batch * per_env < 2**30:  # under 1 GB: no question
         return
-    have = available_bytes()
-    need = batch * PER_ENV_BYTES
+    have = available_bytes(host=engine is not None and engine.host_only)
+    need = batch * per_env
     if have and need > have:
-        raise ValueError(f"--batch={batch}: a rollout of that many envs needs about {need / 2**30:,.0f} GiB (an "
-                         f"estimate of {PER_ENV_BYTES // 1024} KiB an env), more than the {have / 2**30:,.0f} GiB "
-                         f"here; lower --batch or run it on a larger device")
+        where = "" if engine is None else f" on {engine.title}"
+        raise ValueError(f"--batch={batch}: a rollout of that many envs{where} needs about {need / 2**30:,.0f} GiB "
+                         f"({per_env // 1024} KiB an env), more than the {have / 2**30:,.0f} GiB here; the largest "
+                         f"batch that fits is {have // per_env:,}")
 
 
 def run(entry: Entry, o: types.SimpleNamespace) -> Dict[str, Any]:
     """Check, run, report; write `o.json` and plot to `o.png` where the entry has those options. Returns the
     result and prints what was written."""
     check_options(entry, o)
-    check_batch_memory(o)
+    check_batch_memory(o)  # the generous estimate, before JAX loads; the chosen engine's figure below
     names = {opt.name for opt in entry.options}
     physics = None
     if "physics" in names and "against" not in names:  # `hexjax fidelity` names its two presets itself
@@ -145,6 +150,7 @@ def run(entry: Entry, o: types.SimpleNamespace) -> Dict[str, Any]:
             if hasattr(mod, "prepare"):  # checks that need no JAX and settings made before it loads
                 mod.prepare(o)
             physics = pick(o.physics, getattr(o, "engine", "") or None, needs=getattr(mod, "NEEDS", frozenset()))
+            check_batch_memory(o, physics.engine)
             print(physics.header(), flush=True)
             o = types.SimpleNamespace(**{**vars(o), "physics": physics})
     mod = importlib.import_module(entry.entry)

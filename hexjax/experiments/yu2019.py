@@ -29,7 +29,7 @@ from hexjax.world.presets import get_robot, get_terrain
 from hexjax.world.robot import LEG_NAMES, leg_fk
 from hexjax.world.terrain import sample
 
-NEEDS = frozenset({TRACES})  # what this experiment needs of its engine: the walks' traces (the runner picks the engine once)
+NEEDS = frozenset({TRACES})  # what it needs of its engine: the walks' traces (the runner picks the engine once)
 
 
 def _obstacle_end(terrain, kind: str) -> np.ndarray:

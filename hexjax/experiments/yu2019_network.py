@@ -31,7 +31,7 @@ from hexjax.sim.rollout import rollout
 from hexjax.world.presets import get_robot, get_terrain
 from hexjax.world.terrain import sample
 
-NEEDS = frozenset({TRACES})  # what this experiment needs of its engine: the walks' traces (the runner picks the engine once)
+NEEDS = frozenset({TRACES})  # what it needs of its engine: the walks' traces (the runner picks the engine once)
 
 STANCE_MODES = (MODE_NAMES.index("stance"), MODE_NAMES.index("stance-prolong"))
 

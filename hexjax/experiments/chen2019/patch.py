@@ -25,7 +25,7 @@ from hexjax.world.dem import dem_for, dem_layout
 from hexjax.world.presets import get_robot, get_terrain
 from hexjax.world.terrain import heightmap, sample
 
-NEEDS = frozenset({TRACES})  # what this experiment needs of its engine: the walks' traces (the runner picks the engine once)
+NEEDS = frozenset({TRACES})  # what it needs of its engine: the walks' traces (the runner picks the engine once)
 
 
 def patch_spec(width: float = 0.8, taper: float = 0.1):

@@ -17,7 +17,7 @@ from hexjax.sim.engines import RANGE_SENSORS, TRACES
 from hexjax.experiments.chen2019 import patch
 from hexjax.perceive.sensors import get_sensor
 
-NEEDS = frozenset({RANGE_SENSORS, TRACES})  # the walks' traces and the torso's range sensor (the runner picks the engine once)
+NEEDS = frozenset({RANGE_SENSORS, TRACES})  # the walks' traces, the torso's range sensor (the runner picks once)
 
 
 def run(o, entry) -> Dict:

@@ -31,7 +31,7 @@ from hexjax.world.presets import get_robot
 from hexjax.world.robot import RobotSpec, hip_positions
 from hexjax.world.terrain import Terrain
 
-NEEDS = frozenset({TRACES})  # what this experiment needs of its engine: the walks' traces (the runner picks the engine once)
+NEEDS = frozenset({TRACES})  # what it needs of its engine: the walks' traces (the runner picks the engine once)
 
 OBSTACLE_HEIGHT = 0.25  # m: taller than the Luneckas 2020 robot (torso top ~0.12 m)
 

@@ -23,7 +23,7 @@ from hexjax.perceive.sensors import get_sensor
 from hexjax.plan.avoid import AvoidConfig
 from hexjax.world.presets import get_robot
 
-NEEDS = frozenset({RANGE_SENSORS, TRACES})  # the walks' traces and the torso's range sensor (the runner picks the engine once)
+NEEDS = frozenset({RANGE_SENSORS, TRACES})  # the walks' traces, the torso's range sensor (the runner picks once)
 
 MODES = ("privileged", "perceived", "blind")
 

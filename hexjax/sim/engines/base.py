@@ -52,7 +52,9 @@ class Engine:
     full name; precision: of its state; can: what it can do (`CAPABILITIES`); hosts: the platforms it runs on
     ('cpu', 'gpu'); package: the module it needs beyond hexjax's own dependencies, with `install` saying how to
     get it; culls: whether it collides each leg with a few terrain-box slots (MJX's fixed pair list) rather
-    than every box (a broadphase)."""
+    than every box (a broadphase); bytes_per_env: the memory one env of a forward rollout holds where the engine
+    runs (accelerator memory, or the host's for MuJoCo C), as measured on the tactile gait over `high-large` at
+    `validated`'s settings (`hexjax.experiments.runner.check_batch_memory` sizes a batch by it)."""
 
     name: str
     title: str
@@ -60,6 +62,7 @@ class Engine:
     can: FrozenSet[str]
     hosts: Tuple[str, ...]
     culls: bool
+    bytes_per_env: int = 512 * 1024
     package: Optional[str] = None
     install: str = ""
 

@@ -1,5 +1,5 @@
-"""MuJoCo C: the reference engine, float64 on the host's cores. The same robot, terrain, controller and summary as the MJX rollout, with
-the physics stepped by MuJoCo C on all host cores (`mujoco.rollout`, one thread pool).
+"""MuJoCo C: the reference engine, float64 on the host's cores. The same robot, terrain, controller and summary
+as the MJX rollout, with the physics stepped by MuJoCo C on the host's cores (`mujoco.rollout`, one thread pool).
 
 How it differs from the MJX engine, and why:
 - Terrain. MJX checks a fixed list of geom pairs, so hexjax moves a few slot boxes under each foot every
@@ -17,8 +17,8 @@ How it differs from the MJX engine, and why:
 - Forward only (no gradients), on the host alone (no device mesh, no range sensors: those are cast in the MJX
   control step). With `RolloutConfig.record` every per-step trace the MJX engine keeps is kept as well: the
   torso's pose, the feet (MuJoCo's foot-site position sensors), the controller's trace, the joints, the foot
-  forces and tactile pads the controller read. At the very first control step the sensors read zero (no step has run yet); with the
-  default settle time that step is a settling step, whose action is fixed.
+  forces and tactile pads the controller read. At the very first control step the sensors read zero (no step has
+  run yet); with the default settle time that step is a settling step, whose action is fixed.
 """
 
 from __future__ import annotations
@@ -282,7 +282,10 @@ class MuJoCoC(Engine):
         return out, compile_s, "compiled" if compile_s else "process"
 
 
-C_ENGINE = MuJoCoC(name="c", title="MuJoCo C", precision="float64", can=frozenset({TRACES}), hosts=("cpu",), culls=False)
+# bytes_per_env: each env's MjModel copy (141,715 bytes with `high-large`'s 97 boxes) and its float64 state,
+# sensors and per-step outputs (about 20 kB)
+C_ENGINE = MuJoCoC(name="c", title="MuJoCo C", precision="float64", can=frozenset({TRACES}), hosts=("cpu",),
+                   culls=False, bytes_per_env=162_000)
 
 
 @functools.lru_cache(maxsize=16)

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import sys
 from typing import Dict, Optional
 
 import jax
@@ -37,10 +38,12 @@ class Warp(MJX):
     data_template: bool = True
 
     def put_model(self, mj_model):
-        from mujoco.mjx import warp as mjx_warp
-        if not mjx_warp.WARP_INSTALLED:
+        if not self.available():
             raise RuntimeError(f"the warp engine needs the warp-lang package: {self.install}")
         quiet_warp()
+        from mujoco.mjx import warp as mjx_warp
+        if not mjx_warp.WARP_INSTALLED:
+            raise RuntimeError(f"mujoco-mjx does not find warp-lang: {self.install}")
         from hexjax.sim.internals import warp_cpu
         from hexjax.sim.internals.contacts import quiet_overflow
         from hexjax.sim.internals.rules import mjx
@@ -75,19 +78,33 @@ class Warp(MJX):
         return overflow_flags(d)
 
 
+# bytes_per_env: XLA's buffers of the compiled forward rollout, the Data pools MuJoCo Warp's kernels write
+# included, grow by 82,690 bytes an env from B = 32 to 64 (2 CPU cores)
 WARP_ENGINE = Warp(name="warp", title="MuJoCo Warp", precision="float32", can=frozenset({RANGE_SENSORS, TRACES}),
-                   hosts=("gpu", "cpu"), culls=True, package="warp",
+                   hosts=("gpu", "cpu"), culls=True, bytes_per_env=82_690, package="warp",
                    install="pip install 'hexjax[warp]' (or make warp), then run again")
 
 
 def quiet_warp() -> None:
     """Warp's messages off (a line per module it compiles, the CUDA driver's absence on a CPU host) unless
-    HEXJAX_WARP_VERBOSE=1; set before Warp initialises, which is when it says the second."""
+    HEXJAX_WARP_VERBOSE=1; set before Warp initialises, which is when it says the second. That one Warp's C++
+    writes to stderr whatever its settings, so on a host where JAX sees no GPU Warp is initialised with stderr
+    sent to /dev/null."""
     import warp as wp
     quiet = os.environ.get("HEXJAX_WARP_VERBOSE", "") in ("", "0")
     wp.config.quiet = quiet
     if quiet and hasattr(wp, "LOG_WARNING"):  # a module's load time is logged at the INFO level
         wp.config.log_level = wp.LOG_WARNING
+    if quiet and jax.default_backend() == "cpu":  # wp.init() does nothing once Warp is initialised
+        sys.stderr.flush()
+        saved = os.dup(2)
+        try:
+            with open(os.devnull, "w") as null:
+                os.dup2(null.fileno(), 2)
+                wp.init()
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
 
 
 def overflow_counts(flags, physics) -> Optional[Dict[str, int]]:
