@@ -142,7 +142,8 @@ class Physics:
     def certified(self) -> bool:
         """Whether `validated`-style certification covers this engine and these settings (or they are the
         preset's reference: a preset run on its own engine whose `engines` list it with no certificate)."""
-        return any(e[0] == self.engine.name and e[1] == self.settings_from for e in self.preset.engines)
+        from hexjax.sim.engines import get_engine
+        return any(get_engine(e[0]) is self.engine and e[1] == self.settings_from for e in self.preset.engines)
 
     def config(self, terrain=None, kind: Optional[str] = None) -> PhysicsConfig:
         """The settings run for a terrain (`PhysicsPreset.config`)."""
@@ -184,11 +185,10 @@ def pick(preset=None, engine: Optional[str] = None, needs=(), platform: Optional
             return preset
         preset = preset.preset
     p = get_physics(preset)
-    table = {e[0]: e for e in p.engines}
-    own = (p.engine, p.name, ())
+    table = {e[0]: e for e in p.engines}  # certified engines by the names the preset file gives them
     if engine:
         e = get_engine(engine)
-        if p.engines and e.name not in table and e.name != p.engine:
+        if p.engines and e.name not in table and e is not get_engine(p.engine):
             raise ValueError(f"engine={e.name!r}: physics {p.name!r} is certified on {', '.join(table)} only "
                              f"(its engines), or runs its own settings on {p.engine} (docs/physics.md)")
         lacks = e.lacks(needs)
@@ -211,9 +211,7 @@ def pick(preset=None, engine: Optional[str] = None, needs=(), platform: Optional
                    p.engines else f"the {p.name} preset's own engine")
     if not e.available():
         raise ValueError(f"engine={e.name!r}: {e.title} is not installed here: {e.install}")
-    name, settings_from, certs = table.get(e.name, own) if e.name in table else (e.name, p.name, ())
-    if e.name not in table and p.engines:
-        why += " (these settings are not certified on it: docs/physics.md)"
+    _, settings_from, certs = table.get(e.name, (e.name, p.name, ()))
     settings = p.settings if settings_from == p.name else get_physics(settings_from).settings
     return Physics(p, e, settings, settings_from, tuple(certs), why)
 

@@ -123,7 +123,7 @@ def rollout(robot: RobotSpec, terrain: Terrain, controller: Controller, params, 
              come from MuJoCo contact sensors in the model; `Summary.overflow` holds its limit flags.
       'c'    MuJoCo C on `nthread` host threads (default: the cores this process may use) through
              `mujoco.rollout`, every terrain box a static body found by MuJoCo's broadphase; the controller runs in
-             JAX between control steps (`hexjax.sim.engines.c`). Forward only; of the traces only the torso's.
+             JAX between control steps (`hexjax.sim.engines.c`). Forward only, every trace kept.
 
     robot: RobotSpec; terrain: batched Terrain from `hexjax.world.terrain.sample`; controller: a
     `hexjax.control.Controller`; params: its params pytree (shared, or batched with leading axis B when

@@ -164,10 +164,12 @@ def compiled_rollout(engine: MJX, robot: RobotSpec, physics: PhysicsConfig, sens
         env, shared = P("batch"), P()
         specs = (shared, env if params_batched else shared, env, env, env if perturbed else shared)
 
-        def run(m_shared, params, terrain, keys, d_template=None, pert=None):
+        def sharded(m_shared, params, terrain, keys, d_template=None, pert=None):
             def local(m, p, t, k, pe):  # MJX only: no data template
                 return batched(m, p, t, k, None, pe)
             return _shard_map_without_empty_arrays(local, mesh, specs, env, (m_shared, params, terrain, keys, pert))
+
+        run = sharded
 
     # a program with host callbacks (progress) or MuJoCo Warp's kernels does not export: keep none of it
     keep = engine.keeps_programs and not cfg.progress_every
