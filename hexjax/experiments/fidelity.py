@@ -36,7 +36,7 @@ import numpy as np
 
 from hexjax.experiments.fidelity_view import CONTRACT, plot, report  # noqa: F401 (plot, report: the registry's)
 from hexjax.sim.metrics import paired
-from hexjax.experiments.runner import read_partial, write_partial
+from hexjax.experiments.runner import keep_piece, read_kept, read_partial, write_partial
 
 ALL = "all"
 
@@ -95,41 +95,6 @@ def _physics_key(record: Dict) -> str:
     reuses it)."""
     blob = {k: v for k, v in record.items() if k not in ("name", "picked", "certified", "certificates")}
     return hashlib.sha256(json.dumps(blob, sort_keys=True, default=str).encode()).hexdigest()[:12]
-
-
-def _kept_dir(digest: str):
-    from hexjax.cache import cache_dir
-    d = cache_dir()
-    return None if d is None else d / "fidelity" / digest
-
-
-def _kept_runs(digest: str, keys: List[str], have: Dict) -> Dict:
-    """The finished rollouts of `keys` ("label|physics key") kept in the cache for this matrix (`digest`) and not
-    in `have`, saying how many were reused."""
-    d = _kept_dir(digest)
-    out = {}
-    for k in keys:
-        f = None if d is None else d / (hashlib.sha256(k.encode()).hexdigest()[:16] + ".json")
-        if k not in have and f is not None and f.is_file():
-            try:
-                out[k] = json.loads(f.read_text())
-            except (OSError, ValueError):
-                continue
-    if out:
-        print(f"fidelity: reused {len(out)} finished rollouts kept in {d}", flush=True)
-    return out
-
-
-def _keep_run(digest: str, key: str, run) -> None:
-    """Keep one finished rollout in the cache (whole or not at all), for any later run of the same matrix."""
-    d = _kept_dir(digest)
-    if d is None:
-        return
-    d.mkdir(parents=True, exist_ok=True)
-    f = d / (hashlib.sha256(key.encode()).hexdigest()[:16] + ".json")
-    tmp = f.with_suffix(".tmp")
-    tmp.write_text(json.dumps(run))
-    tmp.replace(f)
 
 
 def _presets(o):
@@ -355,7 +320,7 @@ def run(o, entry) -> Dict:
     rep = spec.get("replay") if not o.only else None
     labels = [r[0] for r in runs] + (["replay"] if rep else [])
     done: Dict = read_partial(partial, digest, "runs", "fidelity", "rollouts", 2 * len(labels))
-    done |= _kept_runs(digest, [f"{lb}|{pkey[s]}" for lb in labels for s in pkey], done)
+    done |= read_kept("fidelity", digest, [f"{lb}|{pkey[s]}" for lb in labels for s in pkey], done)
     sides = {"a": a, "b": b}
     todo = {side: [lb for lb in labels if f"{lb}|{pkey[side]}" not in done] for side in sides}
     bar = tqdm(total=2 * len(labels), initial=2 * len(labels) - sum(map(len, todo.values())), desc="fidelity",
@@ -377,7 +342,7 @@ def run(o, entry) -> Dict:
                     out = _walk(o, preset, label, ctrl, rb, duration, idx, cells, key, mesh_for)
                 with lock:
                     done[f"{label}|{pkey[side]}"] = out
-                    _keep_run(digest, f"{label}|{pkey[side]}", out)
+                    keep_piece("fidelity", digest, f"{label}|{pkey[side]}", out)
                     if partial:
                         write_partial(partial, {"digest": digest, "runs": done}, f"{len(done)} of "
                                       f"{2 * len(labels)} rollouts kept in {partial}; the same command resumes")
@@ -385,9 +350,8 @@ def run(o, entry) -> Dict:
                     bar.update(1)
 
     try:
-        on_host = [sides[s].engine.host_only for s in ("a", "b")]
-        if on_host[0] != on_host[1] and jax.default_backend() != "cpu":
-            # an engine on the host's cores beside one on the accelerator, each side in its own thread
+        if sides["a"].engine.host_only != sides["b"].engine.host_only:
+            # an engine on the host's cores beside another engine, each side in its own thread
             with concurrent.futures.ThreadPoolExecutor(2) as pool:
                 for f in [pool.submit(work, side) for side in ("b", "a")]:
                     f.result()

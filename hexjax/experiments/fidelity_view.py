@@ -12,8 +12,7 @@ CONTRACT = {"success_pts": 5.0, "advance_cm": 1.5, "heading_deg": 1.5}
 
 def _engine(record) -> str:
     """The engine a JSON's physics record names (older records call it `backend`)."""
-    e = record.get("engine", record.get("backend"))
-    return e["backend"] if isinstance(e, dict) else e
+    return record.get("engine", record.get("backend"))
 
 
 def report(res: Dict) -> str:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import hashlib
 import importlib
 import json
 import os
@@ -64,14 +65,50 @@ def check_options(entry: Entry, o: types.SimpleNamespace) -> None:
                 resolve(opt.preset, name)
 
 
-def write_partial(path: str, payload, text: str) -> None:
-    """Write a resumable run's partial file whole or not at all (a temporary file renamed over it, so an
-    interrupt never leaves half a file), and `keep` `text`."""
-    tmp = path + ".tmp"
+def _write_whole(path, payload) -> None:
+    """`payload` as JSON at `path`, whole or not at all (a temporary file renamed over it, so an interrupt never
+    leaves half a file)."""
+    tmp = f"{path}.tmp"
     with open(tmp, "w") as f:
         json.dump(payload, f, default=float)
     os.replace(tmp, path)
+
+
+def write_partial(path: str, payload, text: str) -> None:
+    """Write a resumable run's partial file whole or not at all, and `keep` `text`."""
+    _write_whole(path, payload)
     keep(text)
+
+
+def _kept_path(kind: str, digest: str, key: str):
+    from hexjax.cache import cache_dir
+    d = cache_dir()
+    return None if d is None else d / kind / digest / (hashlib.sha256(key.encode()).hexdigest()[:16] + ".json")
+
+
+def read_kept(kind: str, digest: str, keys, have: Dict) -> Dict:
+    """The finished pieces of `keys` that a run of `kind` with the same `digest` kept in the cache (`keep_piece`),
+    leaving out those in `have`, saying how many were reused; {} with the cache off."""
+    out = {}
+    for k in keys:
+        f = _kept_path(kind, digest, k)
+        if k not in have and f is not None and f.is_file():
+            try:
+                out[k] = json.loads(f.read_text())
+            except (OSError, ValueError):  # a file another version wrote or a damaged one: run it again
+                continue
+    if out:
+        print(f"{kind}: reused {len(out)} finished pieces kept in {_kept_path(kind, digest, '').parent}", flush=True)
+    return out
+
+
+def keep_piece(kind: str, digest: str, key: str, piece) -> None:
+    """Keep one finished piece of a run in the cache (whole or not at all), for any later run with the same
+    `digest`: unlike the partial file, it outlives the run's JSON."""
+    f = _kept_path(kind, digest, key)
+    if f is not None:
+        f.parent.mkdir(parents=True, exist_ok=True)
+        _write_whole(f, piece)
 
 
 def read_partial(path: str, digest: str, key: str, name: str, unit: str, total: int, wanted=None) -> Dict:

@@ -125,7 +125,7 @@ def run(o, entry) -> Dict:
     data = make_dataset(n=o.n, seed=o.seed, gaits=o.gaits, distance=o.distance, physics=o.physics)
     save_dataset(o.out, data, {"source": "hexjax experiment luneckas2020-dataset", "n": o.n, "seed": o.seed,
                                "gaits": list(o.gaits), "distance_m": o.distance,
-                               "physics": pick(o.physics, needs={TRACES}).record()})
+                               "physics": pick(o.physics, needs=NEEDS).record()})
     return {"sequences": int(len(data["Y"])), "steps": int(data["X"].shape[1]), "out": o.out}
 
 

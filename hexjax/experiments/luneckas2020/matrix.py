@@ -76,7 +76,7 @@ def run_luneckas2020(n: int = 16, seed: int = 0, gaits: Sequence[str] = GAITS,
                       "paper_relative_error_pct": {"without": 24.0, "with": 12.0}},
            "calibration": {}, "cells": {}, "model": {}, "timing": {}}
     # the walks' physics (`walks.py`): a resumed run keeps only gaits made on the same physics
-    res["physics"] = pick(physics, needs={TRACES}).record()
+    res["physics"] = pick(physics, needs=NEEDS).record()
     # what a kept gait depends on; "readouts" names the per-run figures a kept gait carries (a gait kept before
     # the torso-strike and slip readouts were added is run again)
     key = json.dumps({k: res["config"][k] for k in ("n", "seed", "distances_m")} | {"physics": res["physics"],

@@ -149,9 +149,8 @@ def rollout_c(robot: RobotSpec, terrain, controller, params, n_ctrl: int, keys, 
               sensors: SensorConfig, config: RolloutConfig, params_batched: bool = False,
               nthread: Optional[int] = None, chunk: int = 8192, progress: bool = False, perturbation=None):
     """`hexjax.sim.rollout.rollout` on MuJoCo C (checked there): (the same `Summary`; seconds spent compiling
-    the controller step). nthread: MuJoCo threads (default: the cores this
-    process may use, `host_cores`); chunk: envs
-    per pass (bounds memory; the controller is compiled once for this size). perturbation: a batched
+    the controller step). nthread: MuJoCo threads (default: the cores this process may use, `host_cores`);
+    chunk: envs per pass (bounds memory; the controller is compiled once for this size). perturbation: a batched
     `Perturbation`, applied as on the MJX path: its model fields in each env's MjModel, its sensing and action
     effects by `hexjax.sim.perturb` in the controller step. With `config.record` the torso trace (x, y, z, yaw per
     control step of the walk) is kept with every other trace of `Summary` (`_traces`)."""
