@@ -151,18 +151,20 @@ def test_warp_cpu_hessian_launch_gives_the_same_steps():
 
 
 def test_contact_sensors_read_the_forces_mujoco_reports():
-    """The sensor block decoded by obs_from_sensordata equals mj_contactForce summed per foot / pad."""
-    phys = PhysicsConfig(slots_per_leg=0, torso_slots=0)
-    m = mujoco.MjModel.from_xml_string(build_mjcf(ROBOT, phys, contact_sensors=True, terrain_boxes=1))
-    assert m.nsensordata == sensor_layout()["size"]
-    d = mujoco.MjData(m)
-    mujoco.mj_resetDataKeyframe(m, d, 0)
-    # a box under the front-left foot, so that feet stand on the ground and on a box
-    box = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, "terrain_0")
+    """The sensor block decoded by obs_from_sensordata equals mj_contactForce summed per foot / pad (on the MuJoCo C
+    engine's own model of one box: a world-body geom with its refitted tree)."""
+    from hexjax.sim.engines.c_models import _models, _template
+    tp = _template(ROBOT, PhysicsConfig(slots_per_leg=0, torso_slots=0), 1)
+    assert tp.model.nsensordata == sensor_layout()["size"]
+    d = mujoco.MjData(tp.model)
+    mujoco.mj_resetDataKeyframe(tp.model, d, 0)
+    mujoco.mj_forward(tp.model, d)
+    # a box under the front-left foot, so that feet stand on the ground and on a box (its top 4 mm above the ground)
+    foot = mujoco.mj_name2id(tp.model, mujoco.mjtObj.mjOBJ_SITE, "LF_foot")
+    box_pos = np.array([[[*d.site_xpos[foot, :2], -0.006]]])
+    m = _models(tp, box_pos, np.full((1, 1, 3), 0.01), np.ones((1, 1), bool), np.zeros(1))[0]
     box_geom = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, "terrain_0")
-    foot = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, "LF_foot")
-    mujoco.mj_forward(m, d)
-    m.body_pos[box] = [*d.site_xpos[foot, :2], -0.006]  # its top 4 mm above the ground
+    mujoco.mj_resetDataKeyframe(m, d, 0)
     for _ in range(300):
         mujoco.mj_step(m, d)
     obs = obs_from_sensordata(SensorConfig(), d.qpos, d.qvel, d.sensordata, d.time)

@@ -14,6 +14,8 @@ to one of the terrain boxes nearest to that leg (or the torso): see `hexjax.sim.
 
 from __future__ import annotations
 
+import math
+
 from hexjax.sim.config import PhysicsConfig
 from hexjax.world.robot import (LEG_NAMES, N_LEGS, RobotSpec, forward_sign, hip_positions, mount_yaws,
                                 neutral_joint_angles)
@@ -57,11 +59,13 @@ def build_mjcf(spec: RobotSpec, physics: PhysicsConfig, *, contact_sensors: bool
 
     contact_sensors: declare MuJoCo contact and actuator-force sensors (see `sensor_layout`), so that an
     engine other than MJX's JAX one (MuJoCo Warp, MuJoCo C) computes the same observations.
-    terrain_boxes: instead of slots, declare this many static bodies with one box geom each, `terrain_<j>`
-    (parked below the ground). They collide with the feet, pads and torso through contype / conaffinity, that
-    is through MuJoCo's own broadphase (MuJoCo C, where one model per env is cheap). Needs slots_per_leg =
-    torso_slots = 0. The contact parameters equal the slot pairs': condim 3, the robot's friction, default
-    solref / solimp, no margin."""
+    terrain_boxes: instead of slots, declare this many box geoms `terrain_<j>` in the world body, parked below
+    the ground on a square grid (box j in column j // k, row j % k, k = ceil(sqrt(terrain_boxes)), 1 m apart), so
+    that the compiled bounding-volume tree of the world body splits the grid into blocks of neighbouring slots
+    (MuJoCo C fills the slots with each env's boxes and refits that tree: `hexjax.sim.engines.c`). They collide
+    with the feet, pads and torso through contype / conaffinity, that is through MuJoCo's own broadphase and
+    mid-phase tree. Needs slots_per_leg = torso_slots = 0. The contact parameters equal the slot pairs':
+    condim 3, the robot's friction, default solref / solimp, no margin."""
     spec.validate()
     physics.validate()
     if terrain_boxes and (physics.slots_per_leg or physics.torso_slots):
@@ -104,11 +108,12 @@ def build_mjcf(spec: RobotSpec, physics: PhysicsConfig, *, contact_sensors: bool
             slots.append(f'<geom name="slot_{name}_{k}" type="box" size="0.01 0.01 0.01" pos="0 0 {PARKED_Z}" rgba="0.6 0.5 0.3 1"/>')
     for k in range(physics.torso_slots):
         slots.append(f'<geom name="slot_torso_{k}" type="box" size="0.01 0.01 0.01" pos="0 0 {PARKED_Z}" rgba="0.6 0.5 0.3 1"/>')
+    k = math.ceil(math.sqrt(terrain_boxes))
     for j in range(terrain_boxes):
-        # one static body per box, so that moving the body (body_pos) moves the box and MuJoCo's broadphase
-        # prunes it by its own bounding box (a world body with many geoms keeps a compiled mid-phase tree)
-        slots.append(f'<body name="terrain_{j}" pos="0 0 {PARKED_Z}"><geom name="terrain_{j}" type="box" '
-                     f'size="0.01 0.01 0.01" conaffinity="3" rgba="0.6 0.5 0.3 1"/></body>')
+        # world-body geoms: no body of their own, so neither the broadphase's sweep nor the kinematics of bodies
+        # sees them; the world body's tree (built here from this grid) prunes them
+        slots.append(f'<geom name="terrain_{j}" type="box" size="0.01 0.01 0.01" pos="{j // k} {j % k} {PARKED_Z}" '
+                     f'conaffinity="3" rgba="0.6 0.5 0.3 1"/>')
 
     sensors = []
     if contact_sensors:

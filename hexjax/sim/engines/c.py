@@ -27,6 +27,7 @@ import dataclasses
 import functools
 import math
 import time
+from concurrent.futures import ThreadPoolExecutor
 from typing import Optional
 
 import jax
@@ -39,225 +40,186 @@ from hexjax.sim import perturb
 from hexjax.sim import step as sim_step  # the phase and summarise on the module: tests/test_step.py watches them
 from hexjax.sim.config import PhysicsConfig, RolloutConfig, SensorConfig
 from hexjax.sim.engines.base import TRACES, Engine, host_cores
-from hexjax.sim.mjcf import PARKED_Z, build_mjcf, compile_mjcf, sensor_layout
+from hexjax.sim.engines.c_models import _gains, _models, _template
 from hexjax.sim.model import actuator_forces, foot_positions, obs_from_sensordata
-from hexjax.sim.perturb import MIN_FRICTION
 from hexjax.sim.slip import slip
 from hexjax.sim.step import accumulate, init_acc, settle_steps, start_yaw, substeps
 from hexjax.world.robot import RobotSpec, quat_yaw
 
-_FULL = mujoco.mjtState.mjSTATE_FULLPHYSICS
-PARKED_SPACING = 0.05  # m between parked boxes (0.01 m half sizes): no two overlap
 
+class _Lane:
+    """A share of a chunk's envs stepped as one: its models, MuJoCo state and sensors, controller and perturbation
+    state, summary accumulator, records, and the buffers the physics writes while the other lane's controller
+    runs. `control(i)` runs the controller for control step i and fills the physics' inputs; `finish(i)` reads
+    what the physics made of them."""
 
-@dataclasses.dataclass
-class _Template:
-    model: mujoco.MjModel
-    box_geoms: np.ndarray
-    box_bodies: np.ndarray
-    box_bvh: np.ndarray
-    ground_geom: int
-    torso_body: int
-    qpos0: np.ndarray
-    ctrl0: np.ndarray
-    nstate: int
-    pool: list  # MjModel copies reused across calls (filling one costs a few us, copying one ~0.3 ms)
+    def __init__(self, run, idx, models):
+        self.r, self.idx, self.models = run, idx, models
+        r, n = run, len(idx)
+        nq = r.m0.nq
+        take = lambda x: jax.tree_util.tree_map(lambda a: np.asarray(a)[idx], x)
+        self.prm = jax.tree_util.tree_map(lambda a: a[idx], r.params) if r.params_batched else r.params
+        self.pert = None if r.pert is None else take(r.pert)
+        self.cstate = r.init_fn(self.prm, r.k_ctrl[idx])
+        ctrl0 = r.ctrl0_fn(self.prm)
+        self.ctrl0 = np.broadcast_to(r.tp.ctrl0 if ctrl0 is None else np.asarray(ctrl0), (n, r.m0.nu)).astype(np.float32)
+        self.pstate = None if self.pert is None else jax.vmap(perturb.init_state)(jnp.asarray(self.ctrl0))
+        self.limp = None if self.pert is None else np.nonzero(np.asarray(self.pert.fault_kind) == perturb.LIMP)[0]
+        # initial state: neutral stance at (0, 0, yaw0), joints at the settle posture
+        qpos = np.broadcast_to(r.tp.qpos0, (n, nq)).copy()
+        yw = r.yaw0[idx]
+        qpos[:, 3], qpos[:, 6] = np.cos(yw / 2), np.sin(yw / 2)
+        qpos[:, 7:] = self.ctrl0
+        self.state = np.zeros((n, r.tp.nstate))
+        self.state[:, 1:1 + nq] = qpos
+        self.sens = np.zeros((n, r.m0.nsensordata))
+        self.control_in = np.empty((n, r.n_sub, r.m0.nu))
+        self.st_out = np.empty((n, r.n_sub, r.tp.nstate))
+        self.sd_out = np.empty((n, r.n_sub, r.m0.nsensordata))
+        self.recs = []
+        self.acc = jax.vmap(init_acc)(jnp.stack([jnp.zeros(n), jnp.zeros(n), jnp.asarray(yw, jnp.float32)], -1))
+        self.gz = jnp.asarray(r.ground_z[idx], jnp.float32)
 
+    def step_args(self, i):
+        nq, nv = self.r.m0.nq, self.r.m0.nv
+        return (self.prm, self.cstate, self.state[:, 1:1 + nq], self.state[:, 1 + nq:1 + nq + nv], self.sens,
+                self.state[:, 0], np.int32(i), self.ctrl0, self.pert, self.pstate)
 
-@functools.lru_cache(maxsize=4)
-def _template(robot: RobotSpec, physics: PhysicsConfig, n_boxes: int) -> _Template:
-    phys = dataclasses.replace(physics, slots_per_leg=0, torso_slots=0)
-    # the ground plane moves with each env's ground_z (`_models` writes its geom_pos): see `compile_mjcf`
-    m = compile_mjcf(build_mjcf(robot, phys, contact_sensors=True, terrain_boxes=n_boxes))
-    gid = lambda n: mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, n)
-    key = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_KEY, "stance")
-    assert m.nsensordata == sensor_layout()["size"]
-    bodies = np.array([mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, f"terrain_{j}") for j in range(n_boxes)], dtype=int)
-    return _Template(model=m, box_geoms=np.array([gid(f"terrain_{j}") for j in range(n_boxes)], dtype=int),
-                     box_bodies=bodies, box_bvh=np.asarray(m.body_bvhadr[bodies], dtype=int),
-                     ground_geom=gid("ground"),
-                     torso_body=mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, "torso"),
-                     qpos0=np.array(m.key_qpos[key]), ctrl0=np.array(m.key_ctrl[key]),
-                     nstate=mujoco.mj_stateSize(m, _FULL), pool=[])
+    def control(self, i):
+        r, pert = self.r, self.pert
+        if pert is not None:
+            # as the MJX step: a limp leg's gains are zero from its onset (the model for this step)
+            t_walk = (i - r.n_settle) * r.ctrl_dt
+            for e in self.limp:
+                if float(pert.fault_time[e]) <= t_walk < float(pert.fault_time[e]) + r.ctrl_dt:
+                    _gains(r.tp, self.models[e], np.where(np.arange(r.m0.nu) // 3 == int(pert.fault_leg[e]), 0.0,
+                                                          float(pert.kp_scale[e])))
+        self.q = self.state[:, 1:1 + r.m0.nq].copy()
+        self.cstate, action, self.pstate, self.obs, self.trace = r.step_fn(*self.step_args(i))
+        self.control_in[:] = np.asarray(action, np.float64)[:, None, :]
 
+    def physics(self, pool, datas):
+        pool.rollout(self.models, datas, self.state, self.control_in, control_spec=mujoco.mjtState.mjSTATE_CTRL,
+                     nstep=self.r.n_sub, state=self.st_out, sensordata=self.sd_out, skip_checks=True)
 
-def _models(tp: _Template, box_pos, box_half, box_valid, ground_z, pert=None):
-    """One MjModel per env (from the reused pool) with that env's terrain boxes and ground height, and with
-    `pert` (a host copy of the chunk's `Perturbation`) its draw's model fields (`_perturb_model`)."""
-    n = box_pos.shape[0]
-    while len(tp.pool) < n:
-        tp.pool.append(mujoco.MjModel.__copy__(tp.model))
-    # an env with fewer boxes than the batch's fullest parks the rest below the ground, each apart from the others:
-    # stacked in one place, every parked pair overlapped in the broadphase and was sorted and filtered every step
-    parked = np.stack([PARKED_SPACING * np.arange(box_pos.shape[1]), np.zeros(box_pos.shape[1]),
-                       np.full(box_pos.shape[1], PARKED_Z)], -1)
-    pos = np.where(box_valid[..., None], box_pos, parked)
-    half = np.where(box_valid[..., None], box_half, 0.01)
-    out = tp.pool[:n]
-    for i, mi in enumerate(out):
-        mi.body_pos[tp.box_bodies] = pos[i]
-        mi.geom_size[tp.box_geoms] = half[i]
-        # collision culling reads the bounding sphere, the geom's box and its body's bounding-volume node,
-        # which the compiler made for the placeholder size
-        mi.geom_rbound[tp.box_geoms] = np.linalg.norm(half[i], axis=-1)
-        mi.geom_aabb[tp.box_geoms, 3:] = half[i]
-        mi.bvh_aabb[tp.box_bvh, 3:] = half[i]
-        mi.geom_pos[tp.ground_geom, 2] = ground_z[i]
-        _perturb_model(tp, mi, None if pert is None else jax.tree_util.tree_map(lambda x: x[i], pert))
-    return out
-
-
-def _perturb_model(tp: _Template, mi: mujoco.MjModel, p) -> None:
-    """MjModel `mi` (a pooled copy: every field is written from the template, so a reused copy keeps nothing of
-    its last env) with the draw `p` of one env, as `hexjax.sim.perturb.model` does to an mjx.Model: the robot's
-    ground contacts are declared pairs (their friction set), its terrain-box contacts take the larger of their
-    two geoms' friction (every geom's set). A limp leg's gains are zeroed later, at its onset (`rollout_c`)."""
-    m0, b = tp.model, tp.torso_body
-    if p is None:
-        for f in ("geom_friction", "pair_friction", "body_mass", "body_ipos", "body_inertia", "actuator_gainprm",
-                  "actuator_biasprm", "actuator_forcerange", "dof_damping"):
-            getattr(mi, f)[:] = getattr(m0, f)
-        return
-    f = float(p.friction)
-    mi.geom_friction[:] = m0.geom_friction
-    mi.pair_friction[:] = m0.pair_friction
-    if f >= 0:
-        mi.geom_friction[:, 0] = max(f, MIN_FRICTION)
-        mi.pair_friction[:, :2] = max(f, MIN_FRICTION)
-    p64 = p.replace(torso_mass_scale=float(p.torso_mass_scale), payload_kg=float(p.payload_kg),
-                    payload_offset=np.asarray(p.payload_offset, np.float64))
-    mi.body_mass[:] = m0.body_mass
-    mi.body_ipos[:] = m0.body_ipos
-    mi.body_inertia[:] = m0.body_inertia
-    mi.body_mass[b], mi.body_ipos[b], mi.body_inertia[b] = perturb.torso_with_payload(
-        m0.body_mass[b], m0.body_ipos[b], m0.body_inertia[b], p64, xp=np)
-    _gains(tp, mi, float(p.kp_scale) * np.ones(m0.nu))
-    mi.actuator_forcerange[:] = m0.actuator_forcerange * float(p.torque_scale)
-    mi.dof_damping[:] = m0.dof_damping
-    mi.dof_damping[6:] *= float(p.damping_scale)
-
-
-def _gains(tp: _Template, mi: mujoco.MjModel, scale) -> None:
-    """Servo gains kp and kv of `mi` set to the template's times `scale` (nu,)."""
-    mi.actuator_gainprm[:] = tp.model.actuator_gainprm
-    mi.actuator_biasprm[:] = tp.model.actuator_biasprm
-    mi.actuator_gainprm[:, 0] *= scale
-    mi.actuator_biasprm[:, 1:3] *= scale[:, None]
+    def finish(self, i):
+        r, nq, nv = self.r, self.r.m0.nq, self.r.m0.nv
+        new_state = self.st_out[:, -1]
+        finite = np.all(np.isfinite(new_state), axis=1)
+        power = np.abs(actuator_forces(self.sd_out) * self.st_out[..., 1 + nq + 6:1 + nq + nv]).sum((1, 2))
+        self.state = np.where(finite[:, None], new_state, self.state)
+        obs = self.obs
+        self.acc = r.acc_fn(self.acc, i, self.q.astype(np.float32), self.state[:, 1:1 + nq].astype(np.float32),
+                            finite, (power * r.dt).astype(np.float32), obs.tactile, self.gz, obs.foot_contact)
+        if r.config.record and i >= r.n_settle:
+            self.recs.append((self.state[:, 1:1 + nq].astype(np.float32),
+                              foot_positions(self.sd_out[:, -1]).astype(np.float32), self.trace, obs.foot_force,
+                              obs.tactile))
+        self.sens = np.where(finite[:, None], self.sd_out[:, -1], self.sens)
 
 
 def rollout_c(robot: RobotSpec, terrain, controller, params, n_ctrl: int, keys, *, physics: PhysicsConfig,
               sensors: SensorConfig, config: RolloutConfig, params_batched: bool = False,
-              nthread: Optional[int] = None, chunk: int = 8192, progress: bool = False, perturbation=None):
+              nthread: Optional[int] = None, chunk: int = 8192, lanes: int = 2, progress: bool = False,
+              perturbation=None):
     """`hexjax.sim.rollout.rollout` on MuJoCo C (checked there): (the same `Summary`; seconds spent compiling
     the controller step). nthread: MuJoCo threads (default: the cores this process may use, `host_cores`);
-    chunk: envs per pass (bounds memory; the controller is compiled once for this size). perturbation: a batched
+    chunk: envs per pass (bounds memory; the controller is compiled once for a lane of it); lanes: how many
+    lanes a chunk steps as (below; 1: the controller and physics one after the other). perturbation: a batched
     `Perturbation`, applied as on the MJX path: its model fields in each env's MjModel, its sensing and action
-    effects by `hexjax.sim.perturb` in the controller step. With `config.record` the torso trace (x, y, z, yaw per
-    control step of the walk) is kept with every other trace of `Summary` (`_traces`)."""
+    effects by `hexjax.sim.perturb` in the controller step. With `config.record` the torso trace (x, y, z, yaw
+    per control step of the walk) is kept with every other trace of `Summary` (`_traces`).
+
+    A chunk's envs step as two lanes: while MuJoCo's threads step one lane's physics, this thread runs the other
+    lane's controller and summary (JAX) and reads its physics' outputs, which would otherwise leave the threads
+    idle between control steps (half the time on 16 cores)."""
     nthread = int(nthread or host_cores())
     if nthread < 1:
         raise ValueError(f"nthread={nthread!r}: must be >= 1")
     box_pos, box_half = np.asarray(terrain.box_pos, np.float64), np.asarray(terrain.box_half, np.float64)
-    box_valid, ground_z = np.asarray(terrain.box_valid, bool), np.asarray(terrain.ground_z, np.float64)
+    box_valid = np.asarray(terrain.box_valid, bool)
     b = box_pos.shape[0]
-    # MuJoCo's broadphase sorts every body at every step, parked or not: keep only as many box bodies as the
-    # fullest terrain of the batch has boxes, each env's valid boxes first (148 slots -> ~70 on high-large)
-    order = np.argsort(~box_valid, axis=1, kind="stable")
-    n_boxes = max(1, int(box_valid.sum(1).max()))
-    box_pos, box_half, box_valid = (np.take_along_axis(x, order[..., None] if x.ndim == 3 else order, 1)[:, :n_boxes]
-                                    for x in (box_pos, box_half, box_valid))
-    tp = _template(robot, physics, n_boxes)
-    m0 = tp.model
-    nq, nv, nu = m0.nq, m0.nv, m0.nu
-    n_sub = substeps(physics, controller.dt)
+    # as many box slots as the fullest terrain of the batch has boxes, rounded up to a square grid (every geom costs
+    # its kinematics at every step; 148 slots hold at most 70 boxes on high-large: 81 geoms)
+    tp = _template(robot, physics, math.ceil(math.sqrt(max(1, int(box_valid.sum(1).max())))))
     n_settle = settle_steps(config, controller.dt)
-    dt = physics.timestep
     chunk = max(1, min(int(chunk), b))
+    n_lanes = max(1, min(int(lanes), chunk))
+    chunk = n_lanes * math.ceil(chunk / n_lanes)
     n_chunks = math.ceil(b / chunk)
-
     yaw0, k_ctrl = jax.vmap(lambda k: start_yaw(config, k))(keys)
-    yaw0 = np.asarray(yaw0)
     step_fn, init_fn, ctrl0_fn = _controller_fns(controller, sensors, 0 if params_batched else None,
                                                  perturbation is not None, n_settle)
-    pert_all = None if perturbation is None else jax.device_get(perturbation)
-    acc_fn = _accumulator(config, controller.dt, n_settle, robot)
+    run = _Run(tp=tp, m0=tp.model, params=params, params_batched=params_batched, k_ctrl=k_ctrl,
+               yaw0=np.asarray(yaw0), ground_z=np.asarray(terrain.ground_z, np.float64),
+               pert=None if perturbation is None else jax.device_get(perturbation), init_fn=init_fn,
+               ctrl0_fn=ctrl0_fn, step_fn=step_fn, acc_fn=_accumulator(config, controller.dt, n_settle, robot),
+               n_sub=substeps(physics, controller.dt), n_settle=n_settle, ctrl_dt=controller.dt,
+               dt=physics.timestep, config=config)
+    n_steps = n_settle + n_ctrl
 
     outs = []
     compile_s = 0.0
     if progress:
         from tqdm.auto import tqdm
-        bar = tqdm(total=n_chunks * (n_settle + n_ctrl), desc="mujoco-c", unit="ctrl step")
-    with mj_rollout.Rollout(nthread=nthread) as pool:
-        datas = [mujoco.MjData(m0) for _ in range(nthread)]
+        bar = tqdm(total=n_chunks * n_steps, desc="mujoco-c", unit="ctrl step")
+    with mj_rollout.Rollout(nthread=nthread) as pool, ThreadPoolExecutor(1, "mujoco-c") as worker:
+        datas = [mujoco.MjData(tp.model) for _ in range(nthread)]
         for c in range(n_chunks):
             idx = np.arange(c * chunk, (c + 1) * chunk) % b  # the last chunk wraps round; its extras are dropped
-            take = lambda x: jax.tree_util.tree_map(lambda a: a[idx], x)
-            prm = take(params) if params_batched else params
-            pert = None if pert_all is None else jax.tree_util.tree_map(lambda a: np.asarray(a)[idx], pert_all)
-            models = _models(tp, box_pos[idx], box_half[idx], box_valid[idx], ground_z[idx], pert)
-            cstate = init_fn(prm, k_ctrl[idx])
-            ctrl0 = ctrl0_fn(prm)
-            ctrl0 = np.broadcast_to(tp.ctrl0 if ctrl0 is None else np.asarray(ctrl0), (chunk, nu)).astype(np.float32)
-            pstate = None if pert is None else jax.vmap(perturb.init_state)(jnp.asarray(ctrl0))
-            limp = None if pert is None else np.nonzero(np.asarray(pert.fault_kind) == perturb.LIMP)[0]
-            # initial state: neutral stance at (0, 0, yaw0), joints at the settle posture
-            qpos = np.broadcast_to(tp.qpos0, (chunk, nq)).copy()
-            yw = yaw0[idx]
-            qpos[:, 3], qpos[:, 6] = np.cos(yw / 2), np.sin(yw / 2)
-            qpos[:, 7:] = ctrl0
-            state = np.zeros((chunk, tp.nstate))
-            state[:, 1:1 + nq] = qpos
-            sens = np.zeros((chunk, m0.nsensordata))
-            st_out = np.empty((chunk, n_sub, tp.nstate))
-            sd_out = np.empty((chunk, n_sub, m0.nsensordata))
-            recs = []
-            acc = jax.vmap(init_acc)(jnp.stack([jnp.zeros(chunk), jnp.zeros(chunk), jnp.asarray(yw, jnp.float32)], -1))
-            gz = jnp.asarray(ground_z[idx], jnp.float32)
+            models = _models(tp, box_pos[idx], box_half[idx], box_valid[idx], run.ground_z[idx],
+                             None if run.pert is None else jax.tree_util.tree_map(lambda a: np.asarray(a)[idx], run.pert))
+            w = chunk // n_lanes
+            lanes = [_Lane(run, idx[k * w:(k + 1) * w], models[k * w:(k + 1) * w]) for k in range(n_lanes)]
             if c == 0:  # compile the controller step (timed apart, as the MJX rollout's compile is)
                 t0 = time.perf_counter()
-                jax.block_until_ready(step_fn(prm, cstate, qpos, state[:, 1 + nq:1 + nq + nv], sens, state[:, 0],
-                                              np.int32(0), ctrl0, pert, pstate))
+                jax.block_until_ready(step_fn(*lanes[0].step_args(0)))
                 compile_s = time.perf_counter() - t0
-            for i in range(n_settle + n_ctrl):
-                q, v = state[:, 1:1 + nq], state[:, 1 + nq:1 + nq + nv]
-                if pert is not None:
-                    # as the MJX step: a limp leg's gains are zero from its onset (the model for this step)
-                    t_walk = (i - n_settle) * controller.dt
-                    for e in limp:
-                        if float(pert.fault_time[e]) <= t_walk < float(pert.fault_time[e]) + controller.dt:
-                            _gains(tp, models[e], np.where(np.arange(nu) // 3 == int(pert.fault_leg[e]), 0.0,
-                                                           float(pert.kp_scale[e])))
-                cstate, action, pstate, obs, trace = step_fn(prm, cstate, q, v, sens, state[:, 0], np.int32(i), ctrl0,
-                                                             pert, pstate)
-                tactile, contact = obs.tactile, obs.foot_contact
-                action = np.asarray(action, np.float64)
-                control = np.repeat(action[:, None, :], n_sub, axis=1)
-                pool.rollout(models, datas, state, control, control_spec=mujoco.mjtState.mjSTATE_CTRL,
-                             nstep=n_sub, state=st_out, sensordata=sd_out, skip_checks=True)
-                new_state = st_out[:, -1]
-                finite = np.all(np.isfinite(new_state), axis=1)
-                power = np.abs(actuator_forces(sd_out) * st_out[..., 1 + nq + 6:1 + nq + nv]).sum((1, 2))
-                new_state = np.where(finite[:, None], new_state, state)
-                acc = acc_fn(acc, i, q.astype(np.float32), new_state[:, 1:1 + nq].astype(np.float32), finite,
-                             (power * dt).astype(np.float32), tactile, gz, contact)
-                state = new_state
-                if config.record and i >= n_settle:
-                    recs.append((new_state[:, 1:1 + nq].astype(np.float32),
-                                 foot_positions(sd_out[:, -1]).astype(np.float32), trace, obs.foot_force, tactile))
-                sens = np.where(finite[:, None], sd_out[:, -1], sens)
-                if config.progress_every and (i + 1) % config.progress_every == 0:  # as the MJX scan reports
-                    sim_step._report_progress(i + 1)
-                if progress:
+            busy = [None] * n_lanes
+            # one physics call at a time (one thread pool), in order: lane 1's physics of step i runs while lane 0's
+            # step i is read and its step i + 1 controlled, and the other way round
+            for i in range(n_steps + 1):
+                for k, lane in enumerate(lanes):
+                    if busy[k] is not None:
+                        busy[k].result()
+                        lane.finish(i - 1)
+                    if i < n_steps:
+                        lane.control(i)
+                        busy[k] = worker.submit(lane.physics, pool, datas)
+                if i and config.progress_every and i % config.progress_every == 0:  # as the MJX scan reports
+                    sim_step._report_progress(i)
+                if i and progress:
                     bar.update(1)
-            outs.append((acc, cstate, state[:, 1:1 + nq].astype(np.float32), _traces(recs) if config.record else {}))
+            cat = lambda *xs: jnp.concatenate(xs)
+            outs.append(jax.tree_util.tree_map(cat, *[(ln.acc, ln.cstate, ln.state[:, 1:1 + tp.model.nq].astype(np.float32),
+                                                       _traces(ln.recs) if config.record else {}) for ln in lanes]))
     if progress:
         bar.close()
     cat = lambda *xs: jnp.concatenate(xs)[:b]
-    acc = jax.tree_util.tree_map(cat, *[o[0] for o in outs])
-    final = jax.tree_util.tree_map(cat, *[o[1] for o in outs])
-    q_end = cat(*[o[2] for o in outs])
-    traces = jax.tree_util.tree_map(cat, *[o[3] for o in outs]) if config.record else {}
+    acc, final, q_end, traces = jax.tree_util.tree_map(cat, *outs)
     return sim_step.summarise(acc, q_end, final, **traces), compile_s
+
+
+@dataclasses.dataclass(frozen=True)
+class _Run:
+    """What every lane of one `rollout_c` call shares."""
+    tp: object
+    m0: mujoco.MjModel
+    params: object
+    params_batched: bool
+    k_ctrl: object
+    yaw0: np.ndarray
+    ground_z: np.ndarray
+    pert: object
+    init_fn: object
+    ctrl0_fn: object
+    step_fn: object
+    acc_fn: object
+    n_sub: int
+    n_settle: int
+    ctrl_dt: float
+    dt: float
+    config: RolloutConfig
 
 
 def _traces(recs):
@@ -271,13 +233,15 @@ def _traces(recs):
 
 @dataclasses.dataclass(frozen=True)
 class MuJoCoC(Engine):
-    """MuJoCo C through `mujoco.rollout` on a thread pool; the controller between control steps in JAX."""
+    """MuJoCo C through `mujoco.rollout` on a thread pool; the controller between control steps in JAX on the
+    host's CPU (on a GPU host too: a control step's inputs come from, and its targets go to, host memory)."""
 
     def rollout(self, robot, terrain, controller, params, n_ctrl, keys, *, physics, sensors, config,
                 params_batched, mesh, nthread, perturbation):
-        out, compile_s = rollout_c(robot, terrain, controller, params, n_ctrl, keys, physics=physics,
-                                   sensors=sensors, config=config, params_batched=params_batched, nthread=nthread,
-                                   perturbation=perturbation)
+        with jax.default_device(jax.devices("cpu")[0]):
+            out, compile_s = rollout_c(robot, terrain, controller, params, n_ctrl, keys, physics=physics,
+                                       sensors=sensors, config=config, params_batched=params_batched,
+                                       nthread=nthread, perturbation=perturbation)
         return out, compile_s, "compiled" if compile_s else "process"
 
 
