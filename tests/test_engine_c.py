@@ -86,7 +86,8 @@ def test_world_geom_boxes_meet_the_robot_as_a_freshly_compiled_model(terrain, di
                 d = mujoco.MjData(mm)
                 d.qpos[:] = q
                 mujoco.mj_forward(mm, d)
-                name = lambda g: "box" if mm.geom_bodyid[g] == 0 and g else mujoco.mj_id2name(mm, mujoco.mjtObj.mjOBJ_GEOM, g)
+                name = lambda g: ("box" if mm.geom_bodyid[g] == 0 and g
+                                  else mujoco.mj_id2name(mm, mujoco.mjtObj.mjOBJ_GEOM, g))
                 seen.append((sorted((name(c.geom1), name(c.geom2), round(c.dist, 9), *np.round(c.pos, 9))
                                     for c in d.contact[:d.ncon]), d.qacc.copy()))
             assert seen[0][0] == seen[1][0]
@@ -98,8 +99,8 @@ def test_world_geom_boxes_meet_the_robot_as_a_freshly_compiled_model(terrain, di
 @pytest.mark.cost(25)
 def test_two_lanes_walk_as_one():
     """Overlapping one lane's controller with the other lane's physics changes no number: four tactile walkers on
-    high-large obstacles as one chunk of two lanes give, to the bit, the summary and traces of two chunks of one lane each (the
-    same two envs a controller call either way)."""
+    high-large obstacles as one chunk of two lanes give, to the bit, the summary and traces of two chunks of one
+    lane each (two envs a controller call either way; every terrain here takes the same 9 x 9 slot grid)."""
     ctrl = make_controller("tactile", ROBOT)
     t = sample(get_terrain("high-large"), jax.random.PRNGKey(0), 4)
     keys = jax.random.split(jax.random.PRNGKey(4), 4)
@@ -112,3 +113,27 @@ def test_two_lanes_walk_as_one():
     assert len(leaves(one)) == len(leaves(two)) > 15
     for (path, a), (_, b) in zip(leaves(one), leaves(two)):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b), err_msg=jax.tree_util.keystr(path))
+
+
+@pytest.mark.cost(25)
+def test_lanes_split_a_mixed_batch_by_box_count_and_give_each_env_back_in_place():
+    """Stairs (6 boxes) and obstacle fields (about 25) interleaved in one batch: the lanes sort them by box count,
+    each lane with its own slot grid, and every env's summary comes back in its place, equal to the bit to a run
+    of that terrain family alone (the same slot grid, the same keys)."""
+    from hexjax.world.terrain import pad_terrain
+    ctrl = make_controller("tactile", ROBOT)
+    stairs = sample(get_terrain("stairs-up"), jax.random.PRNGKey(5), 2)
+    field = sample(get_terrain("low-small"), jax.random.PRNGKey(6), 2)
+    m = max(stairs.box_pos.shape[1], field.box_pos.shape[1])
+    a, b = pad_terrain(stairs, m), pad_terrain(field, m)
+    mixed = jax.tree_util.tree_map(lambda x, y: np.stack([y[0], x[0], y[1], x[1]]), a, b)  # field, stairs, ...
+    keys = jax.random.split(jax.random.PRNGKey(7), 4)
+    run = lambda t, k, lanes: rollout_c(ROBOT, t, ctrl, ctrl.default_params(), 60, k, physics=PhysicsConfig(),
+                                        sensors=SensorConfig(), config=RolloutConfig(), lanes=lanes, nthread=2)[0]
+    both = run(mixed, keys, 2)
+    alone = {"field": run(b, keys[0::2], 1), "stairs": run(a, keys[1::2], 1)}
+    assert np.ptp(np.asarray(both.end_pose)[:, 2]) > 0
+    for k in ("end_pose", "travel", "energy", "tactile_steps"):
+        got = np.asarray(getattr(both, k))
+        np.testing.assert_array_equal(got[0::2], np.asarray(getattr(alone["field"], k)), err_msg=k)
+        np.testing.assert_array_equal(got[1::2], np.asarray(getattr(alone["stairs"], k)), err_msg=k)

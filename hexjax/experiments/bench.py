@@ -56,7 +56,8 @@ def mujoco_c_steps_per_s(robot: str, terrain: str, physics: PhysicsConfig, secon
 def bench(robot: str = "luneckas2020", batches: Sequence[int] = (16, 64, 256), sim_seconds: float = 2.0,
           terrains: Sequence[str] = ("flat", "high-large"), gait: str = "tripod",
           physics: Sequence = ("validated",), repeats: int = 2, progress: bool = True,
-          controller: str = "gait", engine: str = "mjx", nthread: int = 0, devices: int = 1) -> Dict:
+          controller: str = "gait", engine: str = "mjx", nthread: int = 0, devices: int = 1,
+          profile: str = "") -> Dict:
     """Times `rollout` at each batch size on each terrain and physics preset. env-steps = envs x physics steps.
 
     physics: physics presets (names, .yaml paths or `PhysicsPreset`s), each timed on every row; every row names
@@ -75,9 +76,14 @@ def bench(robot: str = "luneckas2020", batches: Sequence[int] = (16, 64, 256), s
     kinect_v1 preset perceives: `hexjax.control.perceive_gait`); 'both' means 'gait,cpg'. With 'gait' in the
     list every other controller's row gets `overhead_vs_gait` = gait rate / its rate - 1; with 'avoid' and
     'perceive', the perceive rows get `perception_overhead` = avoid rate / perceive rate - 1 (the cost of
-    perception in the control loop) and `rays_per_s_per_env`."""
+    perception in the control loop) and `rays_per_s_per_env`.
+
+    profile: a folder; each row then runs one more call under JAX's profiler (a trace per row under it) and keeps
+    its busiest kernels as `profile` (`hexjax.experiments.profile`: where the time goes)."""
     if not isinstance(repeats, int) or repeats < 0:
         raise ValueError(f"repeats={repeats!r}: must be an integer >= 0")
+    if profile and os.path.exists(profile) and not os.path.isdir(profile):
+        raise ValueError(f"profile={profile!r}: a file is there; give a folder for the traces")
     for b in batches:
         if not isinstance(b, int) or b < 1:
             raise ValueError(f"batches entry {b!r}: must be an integer >= 1")
@@ -129,6 +135,14 @@ def bench(robot: str = "luneckas2020", batches: Sequence[int] = (16, 64, 256), s
             out = rollout(spec, terr, ctrl, params, sim_seconds, jax.random.PRNGKey(2 + r), **kw)
             jax.block_until_ready(out.end_pose)
             best = min(best, time.perf_counter() - t0)
+        prof = None
+        if profile:
+            from hexjax.experiments.profile import format_profile, profile_call
+            prof = profile_call(lambda: jax.block_until_ready(rollout(spec, terr, ctrl, params, sim_seconds,
+                                                                      jax.random.PRNGKey(1), **kw).end_pose),
+                                os.path.join(profile, f"{pname}_{be}_{tname}_{cname}_b{b}"))
+            if progress:
+                tqdm.write(format_profile(prof, f"{pname} {be} {tname} B={b} {cname}"))
         rows.append(dict(terrain=tname, batch=b, controller=cname, engine=be, physics=pname,
                          settings=timed.settings_from, certified=timed.certified, iterations=phys.iterations,
                          cone=phys.cone, pairs=sim_model(spec, phys).n_pairs,
@@ -139,7 +153,8 @@ def bench(robot: str = "luneckas2020", batches: Sequence[int] = (16, 64, 256), s
                          tactile_steps=int(np.asarray(out.tactile_steps).sum()),
                          tactile_envs=int(np.count_nonzero(np.asarray(out.tactile_steps).sum(-1))),
                          overflow=overflow_counts(out.overflow, phys),
-                         mean_travel_x=round(float(np.mean(np.asarray(out.travel)[:, 0])), 4)))
+                         mean_travel_x=round(float(np.mean(np.asarray(out.travel)[:, 0])), 4),
+                         **({"profile": prof} if prof else {})))
         if progress:
             tqdm.write(f"{pname} {be} {tname} B={b} {cname}: compile {compile_s:.1f} s, {rows[-1]['env_steps_per_s']:.0f} env-steps/s, "
                        f"{rows[-1]['fell']} fell, {rows[-1]['nan']} nan, tactile events {rows[-1]['tactile_steps']}")
@@ -200,7 +215,7 @@ def format_bench(res: Dict) -> str:
 
 
 # The command (configs/commands/bench.yaml) ---------------------------------------------------------------------
-FORWARD_ONLY = ("robot", "seconds", "terrains", "controller", "engine", "nthread", "devices", "physics")
+FORWARD_ONLY = ("robot", "seconds", "terrains", "controller", "engine", "nthread", "devices", "physics", "profile")
 GRAD_ONLY = ("tune", "solver_grad", "backward", "unroll_substeps")
 
 
@@ -215,7 +230,7 @@ def run(o, entry) -> Dict:
                           unroll_substeps=o.unroll_substeps, backwards=o.backward)
     return bench(robot=o.robot, batches=o.batches, sim_seconds=o.seconds, terrains=o.terrains,
                  controller=",".join(o.controller), engine=",".join(o.engine), nthread=o.nthread,
-                 devices=o.devices, repeats=o.repeats, physics=tuple(o.physics))
+                 devices=o.devices, repeats=o.repeats, physics=tuple(o.physics), profile=o.profile)
 
 
 def report(res: Dict) -> str:

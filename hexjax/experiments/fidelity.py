@@ -15,8 +15,9 @@ points, |d mean advance| <= 1.5 cm, |d heading| <= 1.5 deg (`CONTRACT`). Besides
 give the torso's divergence after 0.5, 1 and 2 s.
 
 All cells of one controller that share a physics configuration (terrain slot count) run as the envs of one
-rollout call: terrains padded to one box count, friction and payload as per-env draws. Finished rollouts are kept
-beside the JSON (`<json>.partial.json`); a rerun of the same command resumes after them. Each finished rollout is
+rollout call (on a host-only engine, MuJoCo C, all of them: it splits a call by box count itself), each group
+with its own heading draws: terrains padded to one box count, friction and payload as per-env draws. Finished
+rollouts are kept beside the JSON (`<json>.partial.json`); a rerun of the same command resumes after them. Each finished rollout is
 also kept in the cache (`<cache>/fidelity/`, by the matrix's digest and the physics' own key), so a later run
 against the same reference (another engine or settings under test) runs only its own side.
 """
@@ -183,7 +184,13 @@ def _walk(o, preset, label: str, ctrl, rb, duration: float, idx: List[int], cell
     for j in idx:
         groups.setdefault((inputs[j][0].slots_per_leg, inputs[j][0].torso_slots), []).append(j)
     per_cell = {}
-    for js in groups.values():
+    # a host-only engine (MuJoCo C: every box a geom, no slots) takes every group in one call, whose lanes it splits
+    # by box count itself: big calls keep its threads busy; each group's envs keep the group's heading draws
+    calls = [[js] for js in groups.values()]
+    if preset.engine.host_only:
+        calls = [list(groups.values())]
+    for parts in calls:
+        js = [j for part in parts for j in part]
         physics = preset.config(inputs[js[0]][0], kind="mixed")
         n_box = max(inputs[j][1].box_pos.shape[1] for j in js)
         cat = lambda *xs: jax.tree_util.tree_map(lambda *a: np.concatenate([np.asarray(x) for x in a]), *xs)
@@ -191,7 +198,10 @@ def _walk(o, preset, label: str, ctrl, rb, duration: float, idx: List[int], cell
         pert = concat_perturbations([inputs[j][2] for j in js])
         batched = inputs[js[0]][3] is not None
         params = cat(*[inputs[j][3] for j in js]) if batched else ctrl.default_params()
-        s, st = rollout(rb, terr, ctrl, params, duration, jax.random.fold_in(key, 10_000 + js[0]), physics=physics,
+        group_key = lambda part: jax.random.fold_in(key, 10_000 + part[0])
+        keys = group_key(parts[0]) if len(parts) == 1 else \
+            np.concatenate([jax.random.split(group_key(part), len(part) * o.batch) for part in parts])
+        s, st = rollout(rb, terr, ctrl, params, duration, keys, physics=physics,
                         config=RolloutConfig(), perturbation=pert, params_batched=batched, engine=preset.engine.name,
                         mesh=None if preset.engine.lacks({MESH}) else mesh_for(len(js) * o.batch), stats=True)
         if getattr(o, "progress", True):

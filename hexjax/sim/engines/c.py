@@ -53,8 +53,8 @@ class _Lane:
     runs. `control(i)` runs the controller for control step i and fills the physics' inputs; `finish(i)` reads
     what the physics made of them."""
 
-    def __init__(self, run, idx, models):
-        self.r, self.idx, self.models = run, idx, models
+    def __init__(self, run, idx, models, datas):
+        self.r, self.idx, self.models, self.datas = run, idx, models, datas
         r, n = run, len(idx)
         nq = r.m0.nq
         take = lambda x: jax.tree_util.tree_map(lambda a: np.asarray(a)[idx], x)
@@ -62,7 +62,8 @@ class _Lane:
         self.pert = None if r.pert is None else take(r.pert)
         self.cstate = r.init_fn(self.prm, r.k_ctrl[idx])
         ctrl0 = r.ctrl0_fn(self.prm)
-        self.ctrl0 = np.broadcast_to(r.tp.ctrl0 if ctrl0 is None else np.asarray(ctrl0), (n, r.m0.nu)).astype(np.float32)
+        ctrl0 = r.tp.ctrl0 if ctrl0 is None else np.asarray(ctrl0)
+        self.ctrl0 = np.broadcast_to(ctrl0, (n, r.m0.nu)).astype(np.float32)
         self.pstate = None if self.pert is None else jax.vmap(perturb.init_state)(jnp.asarray(self.ctrl0))
         self.limp = None if self.pert is None else np.nonzero(np.asarray(self.pert.fault_kind) == perturb.LIMP)[0]
         # initial state: neutral stance at (0, 0, yaw0), joints at the settle posture
@@ -98,8 +99,8 @@ class _Lane:
         self.cstate, action, self.pstate, self.obs, self.trace = r.step_fn(*self.step_args(i))
         self.control_in[:] = np.asarray(action, np.float64)[:, None, :]
 
-    def physics(self, pool, datas):
-        pool.rollout(self.models, datas, self.state, self.control_in, control_spec=mujoco.mjtState.mjSTATE_CTRL,
+    def physics(self, pool):
+        pool.rollout(self.models, self.datas, self.state, self.control_in, control_spec=mujoco.mjtState.mjSTATE_CTRL,
                      nstep=self.r.n_sub, state=self.st_out, sensordata=self.sd_out, skip_checks=True)
 
     def finish(self, i):
@@ -120,31 +121,36 @@ class _Lane:
 
 def rollout_c(robot: RobotSpec, terrain, controller, params, n_ctrl: int, keys, *, physics: PhysicsConfig,
               sensors: SensorConfig, config: RolloutConfig, params_batched: bool = False,
-              nthread: Optional[int] = None, chunk: int = 8192, lanes: int = 2, progress: bool = False,
+              nthread: Optional[int] = None, chunk: int = 8192, lanes: Optional[int] = None, progress: bool = False,
               perturbation=None):
     """`hexjax.sim.rollout.rollout` on MuJoCo C (checked there): (the same `Summary`; seconds spent compiling
     the controller step). nthread: MuJoCo threads (default: the cores this process may use, `host_cores`);
     chunk: envs per pass (bounds memory; the controller is compiled once for a lane of it); lanes: how many
-    lanes a chunk steps as (below; 1: the controller and physics one after the other). perturbation: a batched
+    lanes a chunk steps as (below; 1: the controller and physics one after the other; default 1 under 128 envs a
+    chunk, 2 under 1,024, else 4: as many as keep a lane's physics longer than the others' controllers and
+    split a chunk of mixed terrains by box count). perturbation: a batched
     `Perturbation`, applied as on the MJX path: its model fields in each env's MjModel, its sensing and action
     effects by `hexjax.sim.perturb` in the controller step. With `config.record` the torso trace (x, y, z, yaw
     per control step of the walk) is kept with every other trace of `Summary` (`_traces`).
 
-    A chunk's envs step as two lanes: while MuJoCo's threads step one lane's physics, this thread runs the other
-    lane's controller and summary (JAX) and reads its physics' outputs, which would otherwise leave the threads
-    idle between control steps (half the time on 16 cores)."""
+    A chunk's envs step as lanes: while MuJoCo's threads step one lane's physics, this thread runs the other
+    lanes' controllers and summaries (JAX) and reads their physics' outputs, which would otherwise leave the
+    threads idle between control steps (half the time on 16 cores). The lanes split the chunk by box count (the
+    fewer boxes in the first), each lane's models with as many box slots as its own fullest terrain needs."""
     nthread = int(nthread or host_cores())
     if nthread < 1:
         raise ValueError(f"nthread={nthread!r}: must be >= 1")
     box_pos, box_half = np.asarray(terrain.box_pos, np.float64), np.asarray(terrain.box_half, np.float64)
     box_valid = np.asarray(terrain.box_valid, bool)
     b = box_pos.shape[0]
-    # as many box slots as the fullest terrain of the batch has boxes, rounded up to a square grid (every geom costs
-    # its kinematics at every step; 148 slots hold at most 70 boxes on high-large: 81 geoms)
-    tp = _template(robot, physics, math.ceil(math.sqrt(max(1, int(box_valid.sum(1).max())))))
+    counts = box_valid.sum(1)
+    # each lane's models hold as many box slots as its fullest terrain has boxes, rounded up to a square grid (every
+    # geom costs its kinematics at every step; 148 slots hold at most 70 boxes on high-large: 100 geoms)
+    template = lambda n: _template(robot, physics, math.ceil(math.sqrt(max(1, int(n)))))
+    tp = template(counts.max())
     n_settle = settle_steps(config, controller.dt)
     chunk = max(1, min(int(chunk), b))
-    n_lanes = max(1, min(int(lanes), chunk))
+    n_lanes = max(1, min(int(lanes if lanes is not None else (1 if chunk < 128 else 2 if chunk < 1024 else 4)), chunk))
     chunk = n_lanes * math.ceil(chunk / n_lanes)
     n_chunks = math.ceil(b / chunk)
     yaw0, k_ctrl = jax.vmap(lambda k: start_yaw(config, k))(keys)
@@ -164,35 +170,47 @@ def rollout_c(robot: RobotSpec, terrain, controller, params, n_ctrl: int, keys, 
         from tqdm.auto import tqdm
         bar = tqdm(total=n_chunks * n_steps, desc="mujoco-c", unit="ctrl step")
     with mj_rollout.Rollout(nthread=nthread) as pool, ThreadPoolExecutor(1, "mujoco-c") as worker:
-        datas = [mujoco.MjData(tp.model) for _ in range(nthread)]
+        datas = {}  # MjData for each template's models, one a thread
         for c in range(n_chunks):
             idx = np.arange(c * chunk, (c + 1) * chunk) % b  # the last chunk wraps round; its extras are dropped
-            models = _models(tp, box_pos[idx], box_half[idx], box_valid[idx], run.ground_z[idx],
-                             None if run.pert is None else jax.tree_util.tree_map(lambda a: np.asarray(a)[idx], run.pert))
+            # the lanes split the chunk by box count, so that a lane of few boxes does not carry another's empty slots
+            order = np.argsort(counts[idx], kind="stable")
             w = chunk // n_lanes
-            lanes = [_Lane(run, idx[k * w:(k + 1) * w], models[k * w:(k + 1) * w]) for k in range(n_lanes)]
+            running, used = [], {}
+            for k in range(n_lanes):
+                sel = idx[order[k * w:(k + 1) * w]]
+                tk = template(counts[sel].max())
+                pert = None if run.pert is None else jax.tree_util.tree_map(lambda a: np.asarray(a)[sel], run.pert)
+                models = _models(tk, box_pos[sel], box_half[sel], box_valid[sel], run.ground_z[sel], pert,
+                                 start=used.get(tk.k, 0))
+                used[tk.k] = used.get(tk.k, 0) + w
+                if tk.k not in datas:
+                    datas[tk.k] = [mujoco.MjData(tk.model) for _ in range(nthread)]
+                running.append(_Lane(run, sel, models, datas[tk.k]))
             if c == 0:  # compile the controller step (timed apart, as the MJX rollout's compile is)
                 t0 = time.perf_counter()
-                jax.block_until_ready(step_fn(*lanes[0].step_args(0)))
+                jax.block_until_ready(step_fn(*running[0].step_args(0)))
                 compile_s = time.perf_counter() - t0
             busy = [None] * n_lanes
-            # one physics call at a time (one thread pool), in order: lane 1's physics of step i runs while lane 0's
-            # step i is read and its step i + 1 controlled, and the other way round
+            # one physics call at a time (one thread pool), in lane order: lane k's physics of step i runs while the
+            # lanes after it are read and controlled for step i and those before it for step i + 1
             for i in range(n_steps + 1):
-                for k, lane in enumerate(lanes):
+                for k, lane in enumerate(running):
                     if busy[k] is not None:
                         busy[k].result()
                         lane.finish(i - 1)
                     if i < n_steps:
                         lane.control(i)
-                        busy[k] = worker.submit(lane.physics, pool, datas)
+                        busy[k] = worker.submit(lane.physics, pool)
                 if i and config.progress_every and i % config.progress_every == 0:  # as the MJX scan reports
                     sim_step._report_progress(i)
                 if i and progress:
                     bar.update(1)
-            cat = lambda *xs: jnp.concatenate(xs)
-            outs.append(jax.tree_util.tree_map(cat, *[(ln.acc, ln.cstate, ln.state[:, 1:1 + tp.model.nq].astype(np.float32),
-                                                       _traces(ln.recs) if config.record else {}) for ln in lanes]))
+            back = np.argsort(order, kind="stable")  # the lanes' envs back in the chunk's order
+            cat = lambda *xs: jnp.concatenate(xs)[back]
+            nq = tp.model.nq
+            outs.append(jax.tree_util.tree_map(cat, *[(ln.acc, ln.cstate, ln.state[:, 1:1 + nq].astype(np.float32),
+                                                       _traces(ln.recs) if config.record else {}) for ln in running]))
     if progress:
         bar.close()
     cat = lambda *xs: jnp.concatenate(xs)[:b]
@@ -245,8 +263,8 @@ class MuJoCoC(Engine):
         return out, compile_s, "compiled" if compile_s else "process"
 
 
-# bytes_per_env: each env's MjModel copy (115,177 bytes with `high-large`'s 97 boxes in 100 slots) and its float64 state,
-# sensors and per-step outputs (about 20 kB)
+# bytes_per_env: each env's MjModel copy (115,177 bytes with `high-large`'s 97 boxes in 100 slots) and its float64
+# state, sensors and per-step outputs (about 20 kB)
 C_ENGINE = MuJoCoC(name="c", title="MuJoCo C", precision="float64", can=frozenset({TRACES}), hosts=("cpu",),
                    culls=False, bytes_per_env=136_000)
 

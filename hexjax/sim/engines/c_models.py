@@ -111,17 +111,18 @@ def _slot_layout(box_pos, box_half, box_valid, k: int):
     return pos, half, valid
 
 
-def _models(tp: _Template, box_pos, box_half, box_valid, ground_z, pert=None):
+def _models(tp: _Template, box_pos, box_half, box_valid, ground_z, pert=None, start: int = 0):
     """One MjModel per env (from the reused pool) with that env's terrain boxes in the world body's slots
     (`_slot_layout`) and its ground height, the world body's bounding-volume tree refitted to them (`_refit`), and
-    with `pert` (a host copy of the chunk's `Perturbation`) its draw's model fields (`_perturb_model`)."""
+    with `pert` (a host copy of the chunk's `Perturbation`) its draw's model fields (`_perturb_model`). start: the
+    first pooled copy to fill (the models of two lanes of one template do not share copies)."""
     n = box_pos.shape[0]
-    while len(tp.pool) < n:
+    while len(tp.pool) < start + n:
         tp.pool.append(mujoco.MjModel.__copy__(tp.model))
     pos, half, valid = _slot_layout(box_pos, box_half, box_valid, tp.k)
     bits = np.where(valid, tp.model.geom_conaffinity[tp.box_geoms][None], 0)
     aabb = _refit(tp, pos, half)
-    out = tp.pool[:n]
+    out = tp.pool[start:start + n]
     b0, nb = tp.bvh0, len(aabb[0])
     for i, mi in enumerate(out):
         mi.geom_pos[tp.box_geoms] = pos[i]
