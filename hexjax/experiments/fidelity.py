@@ -17,9 +17,9 @@ give the torso's divergence after 0.5, 1 and 2 s.
 All cells of one controller that share a physics configuration (terrain slot count) run as the envs of one
 rollout call (on a host-only engine, MuJoCo C, all of them: it splits a call by box count itself), each group
 with its own heading draws: terrains padded to one box count, friction and payload as per-env draws. Finished
-rollouts are kept beside the JSON (`<json>.partial.json`); a rerun of the same command resumes after them. Each finished rollout is
-also kept in the cache (`<cache>/fidelity/`, by the matrix's digest and the physics' own key), so a later run
-against the same reference (another engine or settings under test) runs only its own side.
+rollouts are kept beside the JSON (`<json>.partial.json`); a rerun of the same command resumes after them. Each
+finished rollout is also kept in the cache (`<cache>/fidelity/`, by the matrix's digest and the physics' own
+key), so a later run against the same reference (another engine or settings under test) runs only its own side.
 """
 
 from __future__ import annotations

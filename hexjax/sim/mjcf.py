@@ -62,7 +62,7 @@ def build_mjcf(spec: RobotSpec, physics: PhysicsConfig, *, contact_sensors: bool
     terrain_boxes: instead of slots, declare this many box geoms `terrain_<j>` in the world body, parked below
     the ground on a square grid (box j in column j // k, row j % k, k = ceil(sqrt(terrain_boxes)), 1 m apart), so
     that the compiled bounding-volume tree of the world body splits the grid into blocks of neighbouring slots
-    (MuJoCo C fills the slots with each env's boxes and refits that tree: `hexjax.sim.engines.c`). They collide
+    (MuJoCo C fills the slots with each env's boxes and refits that tree: `hexjax.sim.engines.c_models`). They collide
     with the feet, pads and torso through contype / conaffinity, that is through MuJoCo's own broadphase and
     mid-phase tree. Needs slots_per_leg = torso_slots = 0. The contact parameters equal the slot pairs':
     condim 3, the robot's friction, default solref / solimp, no margin."""

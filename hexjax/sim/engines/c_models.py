@@ -46,7 +46,7 @@ class _Template:
     pool: list  # MjModel copies reused across calls (filling one costs a few us, copying one ~0.3 ms)
 
 
-@functools.lru_cache(maxsize=4)
+@functools.lru_cache(maxsize=8)  # a call's lanes may each take their own grid side
 def _template(robot: RobotSpec, physics: PhysicsConfig, k: int) -> _Template:
     phys = dataclasses.replace(physics, slots_per_leg=0, torso_slots=0)
     # the ground plane moves with each env's ground_z (`_models` writes its geom_pos): see `compile_mjcf`
