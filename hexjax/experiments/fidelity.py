@@ -25,7 +25,6 @@ key), so a later run against the same reference (another engine or settings unde
 from __future__ import annotations
 
 import concurrent.futures
-import contextlib
 import dataclasses
 import hashlib
 import json
@@ -339,25 +338,22 @@ def run(o, entry) -> Dict:
 
     def work(side):
         preset = sides[side]
-        # an engine that steps on the host's cores keeps its controller steps on the host too, off the accelerator
-        ctx = jax.default_device(jax.devices("cpu")[0]) if preset.engine.host_only else contextlib.nullcontext()
-        with ctx:
-            for label in todo[side]:
-                if f"{label}|{pkey[side]}" in done:  # the other side ran the same physics
-                    continue
-                if label == "replay":
-                    out = _replay(o, preset, rep, key, robot)
-                else:
-                    _, ctrl, rb, duration, idx = next(r for r in runs if r[0] == label)
-                    out = _walk(o, preset, label, ctrl, rb, duration, idx, cells, key, mesh_for)
-                with lock:
-                    done[f"{label}|{pkey[side]}"] = out
-                    keep_piece("fidelity", digest, f"{label}|{pkey[side]}", out)
-                    if partial:
-                        write_partial(partial, {"digest": digest, "runs": done}, f"{len(done)} of "
-                                      f"{2 * len(labels)} rollouts kept in {partial}; the same command resumes")
-                    bar.set_postfix_str(f"{label} on {preset.name} ({preset.engine.name}) done")
-                    bar.update(1)
+        for label in todo[side]:
+            if f"{label}|{pkey[side]}" in done:  # the other side ran the same physics
+                continue
+            if label == "replay":
+                out = _replay(o, preset, rep, key, robot)
+            else:
+                _, ctrl, rb, duration, idx = next(r for r in runs if r[0] == label)
+                out = _walk(o, preset, label, ctrl, rb, duration, idx, cells, key, mesh_for)
+            with lock:
+                done[f"{label}|{pkey[side]}"] = out
+                keep_piece("fidelity", digest, f"{label}|{pkey[side]}", out)
+                if partial:
+                    write_partial(partial, {"digest": digest, "runs": done}, f"{len(done)} of "
+                                  f"{2 * len(labels)} rollouts kept in {partial}; the same command resumes")
+                bar.set_postfix_str(f"{label} on {preset.name} ({preset.engine.name}) done")
+                bar.update(1)
 
     try:
         if sides["a"].engine.host_only != sides["b"].engine.host_only:

@@ -173,6 +173,7 @@ def run(entry: Entry, o: types.SimpleNamespace) -> Dict[str, Any]:
     check_options(entry, o)
     check_batch_memory(o)  # the generous estimate, before JAX loads; the chosen engine's figure below
     names = {opt.name for opt in entry.options}
+    mod = importlib.import_module(entry.entry)
     physics = None
     if "physics" in names and "against" not in names:  # `hexjax fidelity` names its two presets itself
         from hexjax.sim.physics import get_physics, pick, timed_settings
@@ -183,14 +184,12 @@ def run(entry: Entry, o: types.SimpleNamespace) -> Dict[str, Any]:
         else:
             # the physics is chosen here, once: the fastest engine certified for the preset on this host that can
             # do what the command needs (`NEEDS`), or the one --engine names; the command runs it as given
-            mod = importlib.import_module(entry.entry)
             if hasattr(mod, "prepare"):  # checks that need no JAX and settings made before it loads
                 mod.prepare(o)
             physics = pick(o.physics, getattr(o, "engine", "") or None, needs=getattr(mod, "NEEDS", frozenset()))
             check_batch_memory(o, physics.engine)
             print(physics.header(), flush=True)
             o = types.SimpleNamespace(**{**vars(o), "physics": physics})
-    mod = importlib.import_module(entry.entry)
     res = mod.run(o, entry)
     if physics is not None and isinstance(res, dict):  # every result names the physics it ran
         res.setdefault("physics", physics.record())

@@ -122,8 +122,9 @@ def rollout(robot: RobotSpec, terrain: Terrain, controller: Controller, params, 
       'warp' MuJoCo Warp kernels through MJX (CUDA GPU or CPU; needs warp-lang). Forward only; observations
              come from MuJoCo contact sensors in the model; `Summary.overflow` holds its limit flags.
       'c'    MuJoCo C on `nthread` host threads (default: the cores this process may use) through
-             `mujoco.rollout`, every terrain box a geom of the world body found by MuJoCo's mid-phase tree; the controller runs in
-             JAX between control steps (`hexjax.sim.engines.c`). Forward only, every trace kept.
+             `mujoco.rollout`, every terrain box a geom of the world body found by MuJoCo's mid-phase tree; the
+             controller runs in JAX between control steps (`hexjax.sim.engines.c`). Forward only, every trace
+             kept.
 
     robot: RobotSpec; terrain: batched Terrain from `hexjax.world.terrain.sample`; controller: a
     `hexjax.control.Controller`; params: its params pytree (shared, or batched with leading axis B when

@@ -38,6 +38,7 @@ class MJX(Engine):
 
     contact_sensors: bool = False  # the model declares MuJoCo's contact sensors (what MuJoCo Warp and C read)
     keeps_programs: bool = True  # its compiled rollouts export and are kept on disk (`hexjax.sim.compiled`)
+    data_template: bool = False  # the batched rollout takes an empty Data made for the whole batch (`make_data`)
 
     # Build ---------------------------------------------------------------------------------------------------
     def put_model(self, mj_model):
@@ -69,7 +70,7 @@ class MJX(Engine):
 
     def keep_finite(self, d_new, d):
         """(d_new where its qpos and qvel are finite, else d; finite ())."""
-        finite = jnp.all(jnp.isfinite(d_new.qpos)) & jnp.all(jnp.isfinite(d_new.qvel))
+        finite = state_finite(d_new)
         return jax.tree_util.tree_map(lambda a, b: jnp.where(finite, a, b), d_new, d), finite
 
     def overflow(self, d):
@@ -102,8 +103,6 @@ class MJX(Engine):
             from jax.experimental import multihost_utils
             out = multihost_utils.process_allgather(out, tiled=True)
         return out, cs.compile_s, cs.source
-
-    data_template: bool = False  # the batched rollout takes an empty Data made for the whole batch (`make_data`)
 
 
 # bytes_per_env: XLA's buffers of the compiled forward rollout (arguments, outputs, temporaries;
@@ -179,6 +178,11 @@ def compiled_rollout(engine: MJX, robot: RobotSpec, physics: PhysicsConfig, sens
     if keep and mesh is not None:
         static += (mesh,)
     return sm, Compiled(jax.jit(run), static=static)
+
+
+def state_finite(d):
+    """Whether one env's qpos and qvel are all finite (a step that is not is undone: `MJX.keep_finite`)."""
+    return jnp.all(jnp.isfinite(d.qpos)) & jnp.all(jnp.isfinite(d.qvel))
 
 
 def _shard_map_without_empty_arrays(f, mesh: Mesh, specs, out_specs, args):

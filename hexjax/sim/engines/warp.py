@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from hexjax.sim.engines.base import RANGE_SENSORS, TRACES
-from hexjax.sim.engines.mjx import MJX
+from hexjax.sim.engines.mjx import MJX, state_finite
 from hexjax.sim.model import obs_from_sensordata, place_static_geoms
 from hexjax.sim.step import STATE_FIELDS
 
@@ -70,7 +70,7 @@ class Warp(MJX):
         return d  # no gradients
 
     def keep_finite(self, d_new, d):
-        finite = jnp.all(jnp.isfinite(d_new.qpos)) & jnp.all(jnp.isfinite(d_new.qvel))
+        finite = state_finite(d_new)
         return d_new.replace(**{f: jnp.where(finite, getattr(d_new, f), getattr(d, f)) for f in STATE_FIELDS}), finite
 
     def overflow(self, d):
