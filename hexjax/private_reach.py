@@ -16,9 +16,9 @@ PRIVATE = {"mujoco-mjx": ("mujoco.mjx._src", "mjx._src", "mujoco_warp._src"),
            "warp-lang": ("warp._src",),
            "jax": ("jax._src",)}
 USERS = {
-    "mujoco-mjx": ("hexjax/sim/internals/contacts.py", "hexjax/sim/internals/implicit.py",
-                   "hexjax/sim/internals/forward_mode.py", "hexjax/sim/internals/rules.py",
-                   "hexjax/sim/internals/warp_cpu.py"),
+    "mujoco-mjx": ("hexjax/sim/internals/collide.py", "hexjax/sim/internals/contacts.py",
+                   "hexjax/sim/internals/implicit.py", "hexjax/sim/internals/forward_mode.py",
+                   "hexjax/sim/internals/rules.py", "hexjax/sim/internals/warp_cpu.py"),
     "warp-lang": ("hexjax/sim/internals/warp_cpu.py",),
     "jax": ("hexjax/sim/compiled.py", "hexjax/sim/internals/implicit.py", "hexjax/rl/ppo.py", "hexjax/cache.py"),
 }

@@ -45,3 +45,21 @@ def test_without_a_device_the_xla_threads_are_read(tmp_path):
 def test_a_folder_without_a_trace_is_one_clear_error(tmp_path):
     with pytest.raises(FileNotFoundError, match="no perfetto_trace.json.gz"):
         kernel_table(str(tmp_path))
+
+
+def test_bench_grad_reads_a_programs_memory_whether_compiled_or_loaded(tmp_path, monkeypatch):
+    """`hexjax bench --grad`'s memory column: XLA's analysis of the kept program, the same figure whether the
+    program was just compiled or loaded from disk, and at least its arguments and result."""
+    import jax
+    import jax.numpy as jnp
+
+    from hexjax.experiments.bench_grad import program_bytes
+    from hexjax.sim.compiled import Compiled
+    monkeypatch.setenv("HEXJAX_CACHE_DIR", str(tmp_path))
+    x = jnp.ones((128, 256))
+    sizes = []
+    for _ in range(2):  # compiled, then loaded
+        p = Compiled(jax.jit(lambda a: a @ a.T), static=("test/memory",))
+        p.call(x)
+        sizes.append(program_bytes(p))
+    assert sizes[0] == sizes[1] >= x.nbytes + 128 * 128 * 4

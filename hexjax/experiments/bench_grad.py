@@ -11,7 +11,8 @@ For one tuning config (configs/tune/*.yaml) and each batch size, times in one pr
   rollout's scan, 'parallel' the windows side by side, `hexjax.sim.windows`; rows `grad-<solver>-parallel`;
   'forward' no backward pass, forward mode, `hexjax.sim.internals.forward_mode`: rows `grad-implicit-forward`, taken
   without the config's grad_clip, which bounds reverse mode's cotangents only: each row records its bound),
-and reports env-steps/s, the gradient's rate as a share of the forward's, and both compile times.
+and reports env-steps/s, the gradient's rate as a share of the forward's, both compile times and each program's
+memory (XLA's analysis, also per env and control step) with the device's peak (on a GPU).
 Both programs are kept on disk (`hexjax.sim.compiled`), the gradient under the tuner's own key, so a second run,
 or a run after `hexjax tune` with the same config and `train_batch`, loads them instead of tracing them again:
 its compile times are loads (rows say where each program came from; set HEXJAX_CACHE_DIR=off to measure
@@ -70,6 +71,23 @@ def best_call(compiled, args, repeats: int, warm: bool = False):
     return best, out
 
 
+def program_bytes(program: Compiled):
+    """The bytes XLA's compiled program holds while it runs (arguments, outputs and temporaries, less what the
+    outputs alias): its memory analysis, or None where the backend gives none."""
+    exe = next(iter(program.executables.values()), None)
+    analysis = getattr(getattr(exe, "exe", exe), "memory_analysis", None)
+    m = analysis() if analysis is not None else None
+    if m is None:
+        return None
+    return int(m.argument_size_in_bytes + m.output_size_in_bytes + m.temp_size_in_bytes - m.alias_size_in_bytes)
+
+
+def device_peak_bytes():
+    """The device's peak memory in use so far in this process (GPU), or None where it keeps no count (CPU)."""
+    stats = jax.devices()[0].memory_stats() or {}
+    return stats.get("peak_bytes_in_use")
+
+
 def physics_steps(problem: Problem, duration: float | None = None) -> int:
     """Physics steps of one env in `problem`'s training rollout (settling included); `duration`: instead of the
     config's walk."""
@@ -113,6 +131,7 @@ def bench_grad(tune: str = "tactile_tripod", batches: Sequence[int] = (64,),
                 for s in solver_grads for b in backwards}
     base = next(iter(problems.values()))
     n_phys = physics_steps(base)
+    n_ctrl = control_steps(base.duration, base.train_ctrl.dt)
     u0 = base.space.init(base.params0)
     data = {b: base.train_batch(0, b) for b in batches}  # the same terrains and headings for every mode
     rows = []
@@ -128,6 +147,10 @@ def bench_grad(tune: str = "tactile_tripod", batches: Sequence[int] = (64,),
         compile_s, source, run_s, out = _time_kept(program, (u0, terr, keys), repeats)
         row = dict(batch=b, mode=mode if mode == "forward" else f"grad-{mode}", compile_s=round(compile_s, 2),
                    compiled=source, run_s=round(run_s, 4), env_steps_per_s=round(b * n_phys / run_s, 1))
+        # memory: the program's own (XLA's analysis), per env and control step, and the device's peak so far
+        held, peak = program_bytes(program), device_peak_bytes()
+        row.update(program_bytes=held, device_peak_bytes=peak,
+                   bytes_per_env_step=None if held is None else round(held / (b * n_ctrl), 1))
         if mode == "forward":
             row["loss"] = float(out[0])
         else:
@@ -142,7 +165,10 @@ def bench_grad(tune: str = "tactile_tripod", batches: Sequence[int] = (64,),
         if progress:
             tqdm.write(f"B={b} {row['mode']}: {'load' if source == 'disk' else 'compile'} {compile_s:.1f} s, "
                        f"{row['env_steps_per_s']:.0f} env-steps/s"
-                       + (f", {100 * row['rate_vs_forward']:.1f} % of forward" if "rate_vs_forward" in row else ""))
+                       + (f", {100 * row['rate_vs_forward']:.1f} % of forward" if "rate_vs_forward" in row else "")
+                       + ("" if held is None else f", program {held / 2**20:,.1f} MiB"
+                          f" ({row['bytes_per_env_step']:,.0f} bytes an env and control step)")
+                       + ("" if peak is None else f", device peak so far {peak / 2**30:.2f} GiB"))
     dev = jax.devices()[0]
     return dict(kind="grad", tune=tune, controller=cfg.controller, terrain=cfg.terrain, window_s=cfg.window,
                 unroll_substeps=cfg.unroll_substeps,
@@ -158,13 +184,16 @@ def format_bench_grad(res: dict) -> str:
              f"{res['window_s']} s windows, {res['solver_iterations']} Newton iterations"
              + (", physics steps unrolled)" if res.get("unroll_substeps") else ")"),
              f"{'batch':>6} {'mode':<21} {'compile s':>9} {'x fwd':>6} {'env-steps/s':>12} {'% of fwd':>8} "
-             f"{'loss':>9} {'|grad|':>9} {'nonfinite':>9}"]
+             f"{'loss':>9} {'|grad|':>9} {'nonfinite':>9} {'MiB':>9}"]
     for r in res["rows"]:
         pct = f"{100 * r['rate_vs_forward']:7.1f}%" if "rate_vs_forward" in r else ""
         cx = f"{r['compile_vs_forward']:6.2f}" if "compile_vs_forward" in r else ""
         gn = f"{r['grad_norm']:9.3g} {r['grad_nonfinite']:9d}" if "grad_norm" in r else ""
+        mib = "" if r.get("program_bytes") is None else f"{r['program_bytes'] / 2**20:9.1f}"
         lines.append(f"{r['batch']:6d} {r['mode']:<21} {r['compile_s']:9.1f} {cx:>6} {r['env_steps_per_s']:12.0f} "
-                     f"{pct:>8} {r['loss']:9.4f} {gn}")
+                     f"{pct:>8} {r['loss']:9.4f} {gn if gn else ' ' * 19} {mib:>9}")
+    lines.append("MiB: the program's memory while it runs (XLA's analysis: arguments, outputs, temporaries); "
+                 "the JSON also has it per env and control step and the device's peak")
     if any(r.get("compiled") == "disk" for r in res["rows"]):
         lines.append("compile s: loads of programs kept by an earlier run, not compiles (HEXJAX_CACHE_DIR=off "
                      "measures compiles)")

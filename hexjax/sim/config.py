@@ -102,7 +102,9 @@ class RolloutConfig:
     # time; 0: no cut). Its value is unchanged.
     grad_window: int = 0
     # Recompute each control step in the backward pass instead of storing its internals (jax.checkpoint):
-    # memory per env and step drops from every substep's solver residuals to one mjx.Data.
+    # memory per env and step drops from every substep's solver residuals to one mjx.Data. With `grad_window`,
+    # each window is recomputed too (`hexjax.sim.engines.mjx.windowed_scan`): one mjx.Data per window and one
+    # window's steps at a time, so the memory follows the window, not the walk.
     remat: bool = False
     # Trace a control step's physics steps one after another instead of as a loop (values equal to float32
     # rounding: XLA fuses them differently). In reverse mode with `remat`, the loop stacks hundreds of small

@@ -137,7 +137,8 @@ def compiled_rollout(engine: MJX, robot: RobotSpec, physics: PhysicsConfig, sens
             policy = REMAT_POLICY if cfg.solver_grad == "implicit" else None
             body = jax.checkpoint(body, prevent_cse=False, policy=policy)
         carry0 = (d0, cstate0, acc0) + ((perturb.init_state(ctrl0),) if perturbed else ())
-        (d, cstate, acc, *_), rec = jax.lax.scan(body, carry0, jnp.arange(n_settle + n_ctrl))
+        window = cfg.grad_window if cfg.remat else 0
+        (d, cstate, acc, *_), rec = windowed_scan(body, carry0, n_settle + n_ctrl, window)
         extra = {}
         if cfg.record:
             rec = jax.tree_util.tree_map(lambda a: a[n_settle:], rec)
@@ -178,6 +179,27 @@ def compiled_rollout(engine: MJX, robot: RobotSpec, physics: PhysicsConfig, sens
     if keep and mesh is not None:
         static += (mesh,)
     return sm, Compiled(jax.jit(run), static=static)
+
+
+def windowed_scan(body, carry0, n: int, window: int = 0):
+    """`lax.scan(body, carry0, arange(n))`, and with `window` > 0 the same steps as windows of `window` steps, each
+    window's forward recomputed in the backward pass (`jax.checkpoint`): reverse mode then keeps one carry per
+    window and one window's steps at a time, not every step's carry, so a truncated gradient's memory follows its
+    window, not the walk (the walk's last n % window steps run as a plain scan after the windows). The values
+    and the gradient are the same either way."""
+    if window <= 0 or n < 2 * window:
+        return jax.lax.scan(body, carry0, jnp.arange(n))
+    full = n // window
+
+    def one_window(carry, k):
+        return jax.lax.scan(lambda c, j: body(c, k * window + j), carry, jnp.arange(window))
+
+    carry, rec = jax.lax.scan(jax.checkpoint(one_window, prevent_cse=False), carry0, jnp.arange(full))
+    rec = jax.tree_util.tree_map(lambda a: a.reshape((full * window,) + a.shape[2:]), rec)
+    if n == full * window:
+        return carry, rec
+    carry, tail = jax.lax.scan(body, carry, jnp.arange(full * window, n))
+    return carry, jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, b]), rec, tail)
 
 
 def state_finite(d):

@@ -6,6 +6,7 @@ modules is in this package, and a rollout's solve is traced under one context, `
 - `implicit`: the implicit-function-theorem backward of the contact solve, and the kept solutions the windowed
   gradient reuses;
 - `forward_mode`: forward mode's rule through the same solve;
+- `collide`: MuJoCo C's sphere-box and capsule-box contacts in place of MJX's convex routines (`c_box_contacts`);
 - `contacts`: what the simulator reads (contact slot order, contact forces, Warp's overflow flags);
 - `warp_cpu`: MuJoCo Warp's calls recorded and replayed on a CPU.
 
@@ -18,6 +19,7 @@ from __future__ import annotations
 import contextlib
 
 from hexjax.sim.config import PhysicsConfig, RolloutConfig
+from hexjax.sim.internals.collide import c_box_contacts
 from hexjax.sim.internals.forward_mode import check_model, forward_solver
 from hexjax.sim.internals.implicit import REMAT_POLICY, implicit_solver
 from hexjax.sim.internals.rules import integrator_rule, reversible_solver, rotation_rule
@@ -32,7 +34,15 @@ def solver_context(cfg: RolloutConfig, physics: PhysicsConfig):
     two, which reverse mode goes through, also trace MJX's rotation matrices and its implicit integrator's linear
     solve with cheaper derivatives (`hexjax.sim.internals.rules.rotation_rule`, `integrator_rule`; same values);
     forward-only rollouts ('none') are traced as MJX writes them. With `cfg.grad_mode='forward'` the solve takes
-    forward mode's rule instead (`hexjax.sim.internals.forward_mode.forward_solver`)."""
+    forward mode's rule instead (`hexjax.sim.internals.forward_mode.forward_solver`). Every rollout's sphere-box
+    and capsule-box contacts are MuJoCo C's (`hexjax.sim.internals.collide`)."""
+    with c_box_contacts():
+        with _solve_context(cfg, physics):
+            yield
+
+
+@contextlib.contextmanager
+def _solve_context(cfg: RolloutConfig, physics: PhysicsConfig):
     if cfg.solver_grad == "none":
         yield
         return
