@@ -53,7 +53,6 @@ def test_bench_grad_reads_a_programs_memory_whether_compiled_or_loaded(tmp_path,
     import jax
     import jax.numpy as jnp
 
-    from hexjax.experiments.bench_grad import program_bytes
     from hexjax.sim.compiled import Compiled
     monkeypatch.setenv("HEXJAX_CACHE_DIR", str(tmp_path))
     x = jnp.ones((128, 256))
@@ -61,5 +60,5 @@ def test_bench_grad_reads_a_programs_memory_whether_compiled_or_loaded(tmp_path,
     for _ in range(2):  # compiled, then loaded
         p = Compiled(jax.jit(lambda a: a @ a.T), static=("test/memory",))
         p.call(x)
-        sizes.append(program_bytes(p))
+        sizes.append(p.memory_bytes())
     assert sizes[0] == sizes[1] >= x.nbytes + 128 * 128 * 4

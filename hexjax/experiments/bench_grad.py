@@ -71,17 +71,6 @@ def best_call(compiled, args, repeats: int, warm: bool = False):
     return best, out
 
 
-def program_bytes(program: Compiled):
-    """The bytes XLA's compiled program holds while it runs (arguments, outputs and temporaries, less what the
-    outputs alias): its memory analysis, or None where the backend gives none."""
-    exe = next(iter(program.executables.values()), None)
-    analysis = getattr(getattr(exe, "exe", exe), "memory_analysis", None)
-    m = analysis() if analysis is not None else None
-    if m is None:
-        return None
-    return int(m.argument_size_in_bytes + m.output_size_in_bytes + m.temp_size_in_bytes - m.alias_size_in_bytes)
-
-
 def device_peak_bytes():
     """The device's peak memory in use so far in this process (GPU), or None where it keeps no count (CPU)."""
     stats = jax.devices()[0].memory_stats() or {}
@@ -148,7 +137,7 @@ def bench_grad(tune: str = "tactile_tripod", batches: Sequence[int] = (64,),
         row = dict(batch=b, mode=mode if mode == "forward" else f"grad-{mode}", compile_s=round(compile_s, 2),
                    compiled=source, run_s=round(run_s, 4), env_steps_per_s=round(b * n_phys / run_s, 1))
         # memory: the program's own (XLA's analysis), per env and control step, and the device's peak so far
-        held, peak = program_bytes(program), device_peak_bytes()
+        held, peak = program.memory_bytes(), device_peak_bytes()
         row.update(program_bytes=held, device_peak_bytes=peak,
                    bytes_per_env_step=None if held is None else round(held / (b * n_ctrl), 1))
         if mode == "forward":

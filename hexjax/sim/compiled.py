@@ -150,6 +150,9 @@ class _FlatExecutable:
     def as_text(self) -> str:
         return self.exe.as_text()
 
+    def memory_analysis(self):
+        return self.exe.memory_analysis()
+
 
 class Compiled:
     """A jitted function compiled ahead of time per input signature. `call(*args)` returns (outputs,
@@ -179,6 +182,16 @@ class Compiled:
         key = "\n".join([repr(self.static), sig_text, _environment(),
                          *(_source_of(x) for x in self.static if not isinstance(x, (int, str, bool)))])
         return d / "programs" / (hashlib.sha256(key.encode()).hexdigest()[:32] + ".bin")
+
+    def memory_bytes(self) -> Optional[int]:
+        """The bytes the program compiled last (for its input signature) holds while it runs (arguments, outputs
+        and temporaries, less what the outputs alias: XLA's memory analysis), or None before a call or where the
+        backend gives no analysis."""
+        exe = next(reversed(self.executables.values()), None)
+        m = None if exe is None else exe.memory_analysis()
+        if m is None:
+            return None
+        return int(m.argument_size_in_bytes + m.output_size_in_bytes + m.temp_size_in_bytes - m.alias_size_in_bytes)
 
     @staticmethod
     def _flat_executable(exported, out_tree, leaves):
