@@ -30,7 +30,7 @@ from mujoco import mjx
 
 from hexjax.control.registry import make_controller
 from hexjax.sim.config import RolloutConfig
-from hexjax.sim.engines.c_models import _slot_layout
+from hexjax.sim.engines.c_models import _slot_layout, place_boxes
 from hexjax.sim.internals.collide import c_box_contacts
 from hexjax.sim.mjcf import build_mjcf, compile_mjcf
 from hexjax.sim.physics import get_physics
@@ -71,16 +71,15 @@ def env_models(robot, physics, terr, envs: int):
     phys = dataclasses.replace(physics, slots_per_leg=0, torso_slots=0)
     pos, half, ok = _slot_layout(box_pos, box_half, valid, k)
     ground = np.broadcast_to(np.asarray(terr.ground_z, np.float64), (envs,))
+    base = compile_mjcf(build_mjcf(robot, phys, terrain_boxes=k * k))
+    base.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_MIDPHASE
+    boxes = [mujoco.mj_name2id(base, mujoco.mjtObj.mjOBJ_GEOM, f"terrain_{j}") for j in range(k * k)]
+    ground_geom = mujoco.mj_name2id(base, mujoco.mjtObj.mjOBJ_GEOM, "ground")
     out = []
     for i in range(envs):
-        m = compile_mjcf(build_mjcf(robot, phys, terrain_boxes=k * k))
-        boxes = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, f"terrain_{j}") for j in range(k * k)]
-        m.geom_pos[boxes], m.geom_size[boxes] = pos[i], half[i]
-        m.geom_rbound[boxes] = np.linalg.norm(half[i], axis=-1)
-        m.geom_aabb[boxes, 3:] = half[i]
-        m.geom_conaffinity[boxes] = np.where(ok[i], m.geom_conaffinity[boxes], 0)
-        m.geom_pos[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, "ground"), 2] = ground[i]
-        m.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_MIDPHASE
+        m = mujoco.MjModel.__copy__(base)
+        place_boxes(m, boxes, ground_geom, pos[i], half[i], np.where(ok[i], base.geom_conaffinity[boxes], 0),
+                    ground[i])
         out.append(m)
     return out
 

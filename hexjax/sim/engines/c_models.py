@@ -125,17 +125,23 @@ def _models(tp: _Template, box_pos, box_half, box_valid, ground_z, pert=None, st
     out = tp.pool[start:start + n]
     b0, nb = tp.bvh0, len(aabb[0])
     for i, mi in enumerate(out):
-        mi.geom_pos[tp.box_geoms] = pos[i]
-        mi.geom_size[tp.box_geoms] = half[i]
-        # collision culling reads the bounding sphere and the geom's own box, which the compiler made for the
-        # placeholder size, and the world body's tree (refitted)
-        mi.geom_rbound[tp.box_geoms] = np.linalg.norm(half[i], axis=-1)
-        mi.geom_aabb[tp.box_geoms, 3:] = half[i]
-        mi.geom_conaffinity[tp.box_geoms] = bits[i]
-        mi.geom_pos[tp.ground_geom, 2] = ground_z[i]
-        mi.bvh_aabb[b0:b0 + nb] = aabb[i]
+        place_boxes(mi, tp.box_geoms, tp.ground_geom, pos[i], half[i], bits[i], ground_z[i])
+        mi.bvh_aabb[b0:b0 + nb] = aabb[i]  # the world body's tree, refitted
         _perturb_model(tp, mi, None if pert is None else jax.tree_util.tree_map(lambda x: x[i], pert))
     return out
+
+
+def place_boxes(m: mujoco.MjModel, box_geoms, ground_geom: int, pos, half, conaffinity, ground_z) -> None:
+    """One env's slot layout (`_slot_layout`: pos, half (k * k, 3)) written into the box geoms of model `m`, with the
+    slots' conaffinity (0 for an empty slot) and the ground plane's height. Collision culling reads each geom's
+    bounding sphere and own box, which the compiler made for the placeholder size: both are set too (the world
+    body's tree is the caller's: `_refit`)."""
+    m.geom_pos[box_geoms] = pos
+    m.geom_size[box_geoms] = half
+    m.geom_rbound[box_geoms] = np.linalg.norm(half, axis=-1)
+    m.geom_aabb[box_geoms, 3:] = half
+    m.geom_conaffinity[box_geoms] = conaffinity
+    m.geom_pos[ground_geom, 2] = ground_z
 
 
 def _refit(tp: _Template, pos, half):
