@@ -1,5 +1,6 @@
 """What a new user meets at the command line: the version, a batch too large for the machine, SI units, the
-evaluate picture, the sweep's device wording, and a finished run's partial file."""
+evaluate picture, a gradient batch too large, the sweep's device wording, and a finished run's partial file."""
+import dataclasses
 import json
 import os
 import subprocess
@@ -18,7 +19,8 @@ def test_version_answers_without_running_anything():
 
 def test_a_batch_beyond_the_machine_fails_in_one_line_before_any_work(capsys, monkeypatch):
     from hexjax.experiments import runner
-    monkeypatch.setattr(runner, "available_bytes", lambda host=False: 24 * 2**30)
+    from hexjax.sim import memory
+    monkeypatch.setattr(memory, "available_bytes", lambda host=False: 24 * 2**30)
     assert main(["evaluate", "--batch", "100000000"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--batch=100000000" in err[0] and "more than the 24 GiB here" in err[0], err
@@ -27,13 +29,39 @@ def test_a_batch_beyond_the_machine_fails_in_one_line_before_any_work(capsys, mo
     # once the engine is chosen, its own measured figure sizes the batch and names the largest that fits
     from hexjax.sim.engines import get_engine
     warp = get_engine("warp")
-    monkeypatch.setattr(runner, "available_bytes", lambda host=False: 80 * 2**30)
+    monkeypatch.setattr(memory, "available_bytes", lambda host=False: 80 * 2**30)
     with pytest.raises(ValueError) as err:
         runner.check_batch_memory(type("O", (), {"batch": 10**6})(), warp)
-    fits = 80 * 2**30 // int(runner.HEADROOM * warp.bytes_per_env)
+    fits = 80 * 2**30 // int(memory.HEADROOM * warp.bytes_per_env)
     said = str(err.value)
     assert "on MuJoCo Warp needs about" in said and f"the largest batch that fits is {fits:,}" in said
     runner.check_batch_memory(type("O", (), {"batch": fits})(), warp)
+
+
+def test_a_gradient_batch_beyond_the_machine_fails_in_one_line_before_anything_is_traced(capsys, monkeypatch):
+    from hexjax.sim import memory
+    from hexjax.sim.engines import get_engine
+    from hexjax.tune import grad
+    from hexjax.tune.config import load_tune_config
+    from hexjax.tune.objective import Problem
+    monkeypatch.setattr(memory, "available_bytes", lambda host=False: 24 * 2**30)
+    traced = []
+    monkeypatch.setattr(Problem, "gradient_program", lambda self, *a, **k: traced.append(1))
+    # the walk's control steps at MJX's measured bytes an env and control step, with the headroom
+    per_env = lambda steps: int(memory.HEADROOM * get_engine("mjx").grad_bytes_per_env_step * steps)
+    assert main(["bench", "--grad", "--tune", "tactile_tripod_validated", "--solver-grad", "implicit",
+                 "--batches", "4,1000000", "--walk", "10"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    fits = 24 * 2**30 // per_env(500)  # 10 s at the tactile controller's 20 ms
+    assert len(err) == 1 and "--batches=1000000" in err[0] and "500-control-step walk" in err[0], err
+    assert f"the largest batch that fits is {fits:,}" in err[0], err
+    # the tuner refuses its train_batch the same way, before its gradient program is made
+    cfg = dataclasses.replace(load_tune_config("tactile_tripod_validated"), train_batch=10**6)
+    with pytest.raises(ValueError, match="tune.train_batch=1000000: .* largest batch that fits is") as e:
+        grad.tune(cfg, "/nonexistent/never-written", progress=False)
+    assert "1521-control-step walk" in str(e.value) and not traced
+    # the largest batch named fits
+    Problem.build(load_tune_config("tactile_tripod_validated")).check_gradient_fits(24 * 2**30 // per_env(1521))
 
 
 def test_lengths_on_the_command_line_are_in_metres():

@@ -216,7 +216,7 @@ def format_bench(res: Dict) -> str:
 
 # The command (configs/commands/bench.yaml) ---------------------------------------------------------------------
 FORWARD_ONLY = ("robot", "seconds", "terrains", "controller", "engine", "nthread", "devices", "physics", "profile")
-GRAD_ONLY = ("tune", "solver_grad", "backward", "unroll_substeps")
+GRAD_ONLY = ("tune", "solver_grad", "backward", "unroll_substeps", "walk")
 
 
 def run(o, entry) -> Dict:
@@ -227,7 +227,8 @@ def run(o, entry) -> Dict:
     if o.grad:
         from hexjax.experiments.bench_grad import bench_grad
         return bench_grad(tune=o.tune, batches=o.batches, solver_grads=o.solver_grad, repeats=o.repeats,
-                          unroll_substeps=o.unroll_substeps, backwards=o.backward)
+                          unroll_substeps=o.unroll_substeps, backwards=o.backward,
+                          walk=o.walk or None)
     return bench(robot=o.robot, batches=o.batches, sim_seconds=o.seconds, terrains=o.terrains,
                  controller=",".join(o.controller), engine=",".join(o.engine), nthread=o.nthread,
                  devices=o.devices, repeats=o.repeats, physics=tuple(o.physics), profile=o.profile)

@@ -53,9 +53,13 @@ def _time(fn, args, repeats: int):
 
 def _time_kept(program: Compiled, args, repeats: int):
     """(compile s, where the program came from, best call s, output) of a kept program: its first call compiles
-    or loads it (timed before the call runs, `Compiled.call`) and is the warm-up."""
+    or loads it (timed before the call runs, `Compiled.call`) and is the warm-up; with `repeats` 0 that first
+    call, less its compile, is the one timed (a long walk at a large batch, timed once)."""
+    t0 = time.perf_counter()
     out, stats = program.call(*args)
     jax.block_until_ready(out)
+    if repeats == 0:
+        return stats.compile_s, stats.source, time.perf_counter() - t0 - stats.compile_s, out
     return (stats.compile_s, stats.source) + best_call(program, args, repeats, warm=True)
 
 
@@ -98,9 +102,12 @@ def objective_program(problem: Problem, grad: bool, duration: float | None = Non
 
 def bench_grad(tune: str = "tactile_tripod", batches: Sequence[int] = (64,),
                solver_grads: Sequence[str] = GRAD_SOLVERS, repeats: int = 2, progress: bool = True,
-               unroll_substeps: bool = False, backwards: Sequence[str] = ("sequential",)) -> dict:
+               unroll_substeps: bool = False, backwards: Sequence[str] = ("sequential",),
+               walk: float | None = None) -> dict:
     """Rows per batch: forward, then value_and_grad for each of `solver_grads` and `backwards` (see the module
-    docstring); `unroll_substeps`: the gradient rollouts' `RolloutConfig.unroll_substeps`."""
+    docstring); `unroll_substeps`: the gradient rollouts' `RolloutConfig.unroll_substeps`; `walk` (s): the
+    objective's walk instead of the config's. A batch whose gradient cannot fit is refused before anything
+    compiles (`Problem.check_gradient_fits`)."""
     bad = [s for s in solver_grads if s not in GRAD_SOLVERS]
     if bad or not solver_grads:
         raise ValueError(f"solver_grad={list(solver_grads)!r}: a comma list of {GRAD_SOLVERS}")
@@ -119,8 +126,12 @@ def bench_grad(tune: str = "tactile_tripod", batches: Sequence[int] = (64,),
                                                   grad_clip=None if b == "forward" else cfg.grad_clip))
                 for s in solver_grads for b in backwards}
     base = next(iter(problems.values()))
-    n_phys = physics_steps(base)
-    n_ctrl = control_steps(base.duration, base.train_ctrl.dt)
+    if walk is not None and not walk > 0:
+        raise ValueError(f"walk={walk!r}: seconds walked must be > 0")
+    for b in batches:
+        base.check_gradient_fits(b, "--batches", walk)
+    n_phys = physics_steps(base, walk)
+    n_ctrl = control_steps(base.duration if walk is None else walk, base.train_ctrl.dt)
     u0 = base.space.init(base.params0)
     data = {b: base.train_batch(0, b) for b in batches}  # the same terrains and headings for every mode
     rows = []
@@ -132,7 +143,10 @@ def bench_grad(tune: str = "tactile_tripod", batches: Sequence[int] = (64,),
         # config and batch shares one kept program with it
         role = "bench/forward" if mode == "forward" else "grad/vg"
         digest = program_digest(dataclasses.replace(problem.cfg, train_batch=b), "grad")
-        program = Compiled(objective_program(problem, grad=mode != "forward"), static=problem.static(role, digest))
+        if walk is not None:  # another walk is another program
+            role, digest = role + f"/walk{walk:g}", digest + f"/walk{walk:g}"
+        program = Compiled(objective_program(problem, grad=mode != "forward", duration=walk),
+                           static=problem.static(role, digest))
         compile_s, source, run_s, out = _time_kept(program, (u0, terr, keys), repeats)
         row = dict(batch=b, mode=mode if mode == "forward" else f"grad-{mode}", compile_s=round(compile_s, 2),
                    compiled=source, run_s=round(run_s, 4), env_steps_per_s=round(b * n_phys / run_s, 1))
@@ -161,7 +175,8 @@ def bench_grad(tune: str = "tactile_tripod", batches: Sequence[int] = (64,),
     dev = jax.devices()[0]
     return dict(kind="grad", tune=tune, controller=cfg.controller, terrain=cfg.terrain, window_s=cfg.window,
                 unroll_substeps=cfg.unroll_substeps,
-                duration_s=base.duration, physics_steps_per_env=n_phys,
+                duration_s=base.duration if walk is None else walk, physics_steps_per_env=n_phys,
+                control_steps_per_env=n_ctrl,
                 solver_iterations=base.physics().iterations, backend=jax.default_backend(),
                 device=f"{dev.platform}:{getattr(dev, 'device_kind', '')}", host=platform.node(),
                 cpu_count=os.cpu_count(), jax=jax.__version__, date=time.strftime("%Y-%m-%d"), rows=rows)

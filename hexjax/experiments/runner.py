@@ -16,6 +16,7 @@ from typing import Any, Dict, List
 from hexjax.experiments.registry import Entry
 from hexjax.interrupt import keep
 from hexjax.sim.config import RolloutConfig
+from hexjax.sim.memory import HEADROOM, check_fits
 from hexjax.world.files import resolve
 
 
@@ -134,20 +135,8 @@ def write_json(path: str, obj) -> None:
         json.dump({k: v for k, v in obj.items() if not str(k).startswith("_")}, f, indent=2, default=float)
 
 
-# the headroom on an engine's measured bytes per env (`Engine.bytes_per_env`): traces, the terrain's boxes, the
-# allocator's rounding; and the estimate when no engine is chosen yet
-HEADROOM = 2.0
+# the estimate when no engine is chosen yet (the engine's own figure has `HEADROOM` on it)
 PER_ENV_BYTES = 512 * 1024
-
-
-def available_bytes(host: bool = False) -> int:
-    """Memory the batch can use: every local accelerator's limit, or the host's RAM on a CPU or for an engine
-    that runs on the host (`host`)."""
-    import jax
-    devs = jax.local_devices()
-    if devs[0].platform != "cpu" and not host:
-        return sum(int((d.memory_stats() or {}).get("bytes_limit", 0)) for d in devs)
-    return os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
 
 
 def check_batch_memory(o: types.SimpleNamespace, engine=None) -> None:
@@ -155,16 +144,11 @@ def check_batch_memory(o: types.SimpleNamespace, engine=None) -> None:
     where `engine` runs (its measured bytes per env with `HEADROOM`; without an engine a generous
     `PER_ENV_BYTES`), before terrains are drawn or anything compiles."""
     batch = getattr(o, "batch", None)
-    per_env = PER_ENV_BYTES if engine is None else int(HEADROOM * engine.bytes_per_env)
-    if not isinstance(batch, int) or batch * per_env < 2**30:  # under 1 GB: no question
+    if not isinstance(batch, int):
         return
-    have = available_bytes(host=engine is not None and engine.host_only)
-    need = batch * per_env
-    if have and need > have:
-        where = "" if engine is None else f" on {engine.title}"
-        raise ValueError(f"--batch={batch}: a rollout of that many envs{where} needs about {need / 2**30:,.0f} GiB "
-                         f"({per_env // 1024} KiB an env), more than the {have / 2**30:,.0f} GiB here; the largest "
-                         f"batch that fits is {have // per_env:,}")
+    per_env = PER_ENV_BYTES if engine is None else int(HEADROOM * engine.bytes_per_env)
+    what = "a rollout of that many envs" + ("" if engine is None else f" on {engine.title}")
+    check_fits("--batch", batch, per_env, what, host=engine is not None and engine.host_only)
 
 
 def run(entry: Entry, o: types.SimpleNamespace) -> Dict[str, Any]:

@@ -48,6 +48,7 @@ def tune(cfg: TuneConfig, out_dir: str, resume: bool = True, progress: bool = Tr
     to out_dir/tune.png. `time_limit` (s) stops early, at a step boundary."""
     t_start = time.perf_counter()
     problem = Problem.build(cfg)
+    problem.check_gradient_fits(cfg.train_batch, "tune.train_batch")
     if cfg.backward == "forward" and problem.physics().cone != "pyramidal":
         raise ValueError(f"tune.train_physics={cfg.train_physics!r}: its {problem.physics().cone} cone has no "
                          "forward-mode gradient (backward: forward needs the pyramidal cone); use backward: "

@@ -190,6 +190,18 @@ class Problem:
         `train_rollout(grad=True)`, with `grad_clip` bounding each env's own cotangent (`mean_value_and_grad`)."""
         return mean_value_and_grad(self.loss_fn(fn, model))
 
+    def check_gradient_fits(self, batch: int, flag: str = "train_batch", duration: Optional[float] = None) -> None:
+        """One ValueError line naming the largest batch that fits, when `batch` envs of the gradient program
+        cannot fit on this host's accelerators (the walk's control steps at the gradient engine's measured bytes
+        an env and control step, `hexjax.sim.memory`), before anything is traced. `flag`: the setting named."""
+        from hexjax.sim.engines import get_engine
+        from hexjax.sim.memory import HEADROOM, check_fits
+        from hexjax.sim.step import control_steps
+        engine = get_engine("mjx")  # the one engine the rollout's gradient runs (`rollout_function`)
+        n_ctrl = control_steps(self.duration if duration is None else duration, self.train_ctrl.dt)
+        per_env = int(HEADROOM * engine.grad_bytes_per_env_step * n_ctrl)
+        check_fits(flag, batch, per_env, f"the value and gradient of a {n_ctrl}-control-step walk on {engine.title}")
+
     def gradient_program(self, duration: Optional[float] = None, settle_time: Optional[float] = None):
         """The function a first-order tuning step jits, f(u, terrain, keys) -> ((mean J, per-env J), d mean J / du),
         with its backward pass as `backward` says: reverse mode through the rollout's scan (`value_and_grad`),

@@ -54,7 +54,10 @@ class Engine:
     get it; culls: whether it collides each leg with a few terrain-box slots (MJX's fixed pair list) rather
     than every box (a broadphase); bytes_per_env: the memory one env of a forward rollout holds where the engine
     runs (accelerator memory, or the host's for MuJoCo C), as measured on the tactile gait over `high-large` at
-    `validated`'s settings (`hexjax.experiments.runner.check_batch_memory` sizes a batch by it)."""
+    `validated`'s settings (`hexjax.experiments.runner.check_batch_memory` sizes a batch by it);
+    grad_bytes_per_env_step: for an engine with `GRADIENTS`, the memory of the windowed value-and-gradient
+    program per env and control step, as measured by `hexjax bench --grad` (a gradient batch is sized by it
+    before anything compiles: `hexjax.sim.memory`)."""
 
     name: str
     title: str
@@ -63,6 +66,7 @@ class Engine:
     hosts: Tuple[str, ...]
     culls: bool
     bytes_per_env: int = 512 * 1024
+    grad_bytes_per_env_step: Optional[int] = None
     package: Optional[str] = None
     install: str = ""
 
@@ -98,3 +102,4 @@ class Engine:
         """(Summary, seconds compiling, where the program came from: 'compiled', 'disk' or 'process') of a
         batch checked by `hexjax.sim.rollout.rollout`."""
         raise NotImplementedError
+
