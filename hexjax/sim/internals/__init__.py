@@ -6,7 +6,8 @@ modules is in this package, and a rollout's solve is traced under one context, `
 - `implicit`: the implicit-function-theorem backward of the contact solve, and the kept solutions the windowed
   gradient reuses;
 - `forward_mode`: forward mode's rule through the same solve;
-- `collide`: MuJoCo C's sphere-box and capsule-box contacts in place of MJX's convex routines (`c_box_contacts`);
+- `collide`: MuJoCo C's sphere-box and capsule-box contacts in place of MJX's convex routines, and MJX's box-box
+  contact with its edge clipping differentiated without NaN (`c_box_contacts`);
 - `contacts`: what the simulator reads (contact slot order, contact forces, Warp's overflow flags);
 - `warp_cpu`: MuJoCo Warp's calls recorded and replayed on a CPU.
 
@@ -35,7 +36,8 @@ def solver_context(cfg: RolloutConfig, physics: PhysicsConfig):
     solve with cheaper derivatives (`hexjax.sim.internals.rules.rotation_rule`, `integrator_rule`; same values);
     forward-only rollouts ('none') are traced as MJX writes them. With `cfg.grad_mode='forward'` the solve takes
     forward mode's rule instead (`hexjax.sim.internals.forward_mode.forward_solver`). Every rollout's sphere-box
-    and capsule-box contacts are MuJoCo C's (`hexjax.sim.internals.collide`)."""
+    and capsule-box contacts are MuJoCo C's, and its box-box contacts differentiate without NaN
+    (`hexjax.sim.internals.collide`)."""
     with c_box_contacts():
         with _solve_context(cfg, physics):
             yield

@@ -14,6 +14,14 @@ rim. Divisions are guarded so that an untaken branch never sends NaN into a grad
 
 `c_box_contacts()` swaps them into MJX's table of collision functions while a rollout is traced; the number of
 contacts per pair (1 for sphere-box, 2 for capsule-box) is MJX's own, so contact slots keep their layout.
+
+MJX's box-box contact (the torso against an obstacle) stays MJX's, with one guard: where it clips a box edge
+against a face's side plane it divides by the edge's component along the plane's normal, `jnp.clip`s the
+result to the edge and so hides a huge quotient in the value; but under `jit` an edge that is parallel to the
+plane up to rounding (a torso tilted by 1e-6 rad) gives a denominator of 1e-20 instead of 0, the quotient's
+derivative overflows, and the clip's zero derivative times it is NaN: every gradient of a walk whose torso had
+an obstacle in its slot came back NaN even with the boxes apart. `_segment_plane_point` takes the same value and
+divides only where the point lies on the edge (where the derivative is the one MJX would give).
 """
 
 from __future__ import annotations
@@ -223,10 +231,24 @@ def _capsule_box_pair(p1, m1, s1, p2, m2, s2):
     return capsule_box(p1, m1[:, 2], s1[0], s1[1], p2, m2, s2)
 
 
+def _segment_plane_point(a, b, p0, plane_normal):
+    """MJX's `_closest_segment_point_plane` (where segment a-b meets the plane through p0, clipped to the segment),
+    the same value, differentiated without NaN: the quotient is taken only where it lies in [0, 1]; elsewhere the
+    point is an end of the segment and does not move with the plane."""
+    num = jnp.sum(p0 * plane_normal) - jnp.sum(plane_normal * a)  # MJX's order of operations: its value
+    denom = jnp.sum(plane_normal * (b - a))
+    t_mjx = jnp.clip(num / (denom + 1e-6 * (denom == 0.0)), 0, 1)  # MJX's value, kept where the end is taken
+    on = (jnp.abs(denom) > 1e-30) & (num * denom >= 0) & (jnp.abs(num) <= jnp.abs(denom))
+    t = jnp.where(on, num / jnp.where(on, denom, 1.0), jax.lax.stop_gradient(t_mjx))
+    return a + t * (b - a)
+
+
 @contextlib.contextmanager
 def c_box_contacts():
     """While open, MJX's collision driver computes sphere-box and capsule-box contacts as MuJoCo C does (this
-    module's functions in place of `sphere_convex` and `capsule_convex`). Read when a rollout is traced."""
+    module's functions in place of `sphere_convex` and `capsule_convex`), and its box-box contact clips edges with
+    `_segment_plane_point`. Read when a rollout is traced."""
+    from mujoco.mjx._src import collision_convex as cc
     from mujoco.mjx._src import collision_driver as cd
     box = mjx._src.types.GeomType.BOX
     table = dict(cd._COLLISION_FUNC)
@@ -234,5 +256,5 @@ def c_box_contacts():
                      (mjx._src.types.GeomType.CAPSULE, _collider(_capsule_box_pair, 2))):
         assert table[(kind, box)].ncon == fn.ncon, "MJX changed its contacts per pair; the slot layout would move"
         table[(kind, box)] = fn
-    with swapped(cd, "_COLLISION_FUNC", table):
+    with swapped(cd, "_COLLISION_FUNC", table), swapped(cc, "_closest_segment_point_plane", _segment_plane_point):
         yield
