@@ -47,7 +47,7 @@ def test_the_walk_length_rules_by_hand():
 
 
 def test_an_unknown_controller_is_refused_naming_the_choices():
-    with pytest.raises(ValueError, match=r"controller='walker': use one of gait, tactile, cpg, avoid, perceive"):
+    with pytest.raises(ValueError, match=r"controller='walker': use one of gait, tactile, cpg, avoid, perceive, cpg-reflex, gait-reflex"):
         make_controller("walker", get_robot("luneckas2020"))
 
 

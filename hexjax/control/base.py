@@ -15,6 +15,8 @@ pytree; everything a controller remembers between steps lives in a `state` pytre
                                                the (18,) joint position targets, rad
     initial_action(params) -> (18,) or None    the joint targets to settle in (None: the robot's stance)
     trace(state, obs) -> pytree or None        what `RolloutConfig(record=True)` keeps per step
+    reflex_phase(params, state) -> (k,)        where the controller is in its cycle, for a learned reflex layer
+                                               (`hexjax.control.reflex`); empty by default
     sensor, perceive_every                     a range sensor (`hexjax.perceive.sensors.RangeSensor`) or None
     perceive(params, state, scan, key) -> state   every `perceive_every` control steps of the walk, the
                                                control step casts the sensor's rays against the env's terrain
@@ -87,6 +89,11 @@ class Controller:
     def trace(self, state, obs) -> Any:
         """A pytree recorded per control step with `RolloutConfig(record=True)`; None: nothing."""
         return None
+
+    def reflex_phase(self, params, state) -> jax.Array:
+        """(k,) numbers of order one saying where the controller is in its cycle (a learned reflex layer's
+        input, `hexjax.control.reflex`); none by default."""
+        return jnp.zeros((0,))
 
     #: a `hexjax.perceive.sensors.RangeSensor` the control step scans the terrain with, or None (no scans)
     sensor: Any = None

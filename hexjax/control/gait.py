@@ -139,6 +139,11 @@ class PatternClock(Controller):
         n, seconds = self.duration_for(distance, params)
         return dataclasses.replace(self, n_cycles=n), seconds
 
+    def reflex_phase(self, params, state) -> jax.Array:
+        """The gait clock's sine and cosine over one cycle (`state.t`, s)."""
+        a = 2.0 * jnp.pi * state.t / (params.swing_time * self.pattern.period)
+        return jnp.stack([jnp.sin(a), jnp.cos(a)])
+
 
 @dataclasses.dataclass(frozen=True)
 class GaitController(PatternClock):

@@ -50,6 +50,16 @@ def _perceive(robot, gait="tripod", sensor="kinect_v1", **kw):
                                **kw)
 
 
+def _reflex(base: str):
+    """A factory of `base` under a learned reflex layer: the layer's fields (hidden, max_offset, seed) go to the
+    layer, the others to the base controller."""
+    def make(robot, gait="tripod", hidden=(32,), max_offset=0.3, seed=0, **kw):
+        from hexjax.control.reflex import ReflexController
+        return ReflexController(CONTROLLERS[base].make(robot, gait=gait, **kw), hidden=tuple(hidden),
+                                max_offset=max_offset, seed=seed)
+    return make
+
+
 CONTROLLERS: Dict[str, ControllerEntry] = {
     "gait": ControllerEntry(_gait, "luneckas2020", "the Luneckas 2020 open-loop gait (Eqs. 2-4)"),
     "tactile": ControllerEntry(_tactile, "luneckas2020", "the gait with Luneckas 2020's tactile obstacle "
@@ -59,6 +69,10 @@ CONTROLLERS: Dict[str, ControllerEntry] = {
                              "the terrain's boxes"),
     "perceive": ControllerEntry(_perceive, "luneckas2020", "the avoiding gait steered by what a range sensor "
                                 "perceives (Kinect V1 preset: scan, grid map, RANSAC, circles)"),
+    "cpg-reflex": ControllerEntry(_reflex("cpg"), "yu2019", "the Yu 2019 CPG under a learned reflex layer "
+                                  "(joint-target offsets from the senses, zero at the start)"),
+    "gait-reflex": ControllerEntry(_reflex("gait"), "luneckas2020", "the Luneckas 2020 gait under a learned reflex "
+                                   "layer (joint-target offsets from the senses, zero at the start)"),
 }
 
 

@@ -83,8 +83,7 @@ class CPGController(Controller):
             leg_clearance=jnp.zeros(N_LEGS), leg_f_scale=jnp.ones((N_LEGS, 3)), ramp_time=jnp.asarray(0.5),
             elevator_y1=jnp.asarray(-1.0), elevator_window=jnp.asarray(-0.5),
             search_amp=jnp.radians(jnp.array([7.5, 4.0, 2.5])),
-            search_sigma=jnp.asarray(1.2), search_freq=jnp.array([0.5, 1.5, 1.5]),
-            raised_tolerance=jnp.asarray(0.015),
+            search_sigma=jnp.asarray(1.2), search_freq=jnp.array([0.5, 1.5, 1.5]), raised_tolerance=jnp.asarray(0.015),
             temp_force=jnp.asarray(1.0), temp_phase=jnp.asarray(0.05), temp_height=jnp.asarray(0.002),
             feedback=jnp.asarray(float(self.feedback)), elevator=jnp.asarray(float(self.elevator)),
             searching=jnp.asarray(float(self.searching)), smooth=jnp.asarray(float(self.smooth)),
@@ -383,18 +382,19 @@ class CPGController(Controller):
         yf = z[:, 1:, 1] + w[:, None] * (target[:, None] - z[:, 1:, 1])
         return z.at[:, 1:, 1].set(yf)
 
-    # Introspection ------------------------------------------------------------------------------
     @staticmethod
     def mode(s: CPGState):
         """(..., 6) int mode per leg, indices into MODE_NAMES (hard form; smooth values are rounded)."""
         sw, hd, se, fl = (jnp.round(a) for a in (s.swing, s.hold, s.search, s.failed))
-        m = jnp.where(sw > 0, 1, 0)
-        m = jnp.where(hd > 0, jnp.where(sw > 0, 3, 2), m)
-        m = jnp.where(se > 0, 4, m)
-        return jnp.where(fl > 0, 5, m)
+        on = (sw > 0).astype(jnp.int32)
+        return jnp.where(fl > 0, 5, jnp.where(se > 0, 4, jnp.where(hd > 0, 2 + on, on)))
 
     def trace(self, s: CPGState, obs):
         """Per-step record for plots: neuron outputs x (6, 3), leader rate y1 (6,), mode (6,), joint command
         (6, 3), lambda_ob (6,), elevator ramp (6,), toe force in the torso frame (6, 3) N."""
         return dict(x=s.z[..., 0], y1=s.z[:, 0, 1], mode=self.mode(s), q_cmd=s.q_cmd, lam_ob=s.lam_ob, elev=s.elev,
                     force=quat_to_body(obs.torso_quat, obs.foot_force), quat=obs.torso_quat)
+
+    def reflex_phase(self, p: CPGParams, s: CPGState) -> jax.Array:
+        """Each leg's leader oscillator, neuron and rate (z[:, 0]: 6 x 2), for a learned reflex layer."""
+        return s.z[:, 0].reshape(-1)
