@@ -58,3 +58,49 @@ def test_bad_layer_settings_are_refused_naming_the_field():
     bad = p.replace(net=jax.tree_util.tree_map(lambda x: x * jnp.nan, p.net))
     with pytest.raises(ValueError, match=r"reflex.net\['params'\].*: not finite"):
         ctrl.validate_params(bad)
+
+
+def test_the_tuner_moves_the_layers_weights_unbounded():
+    """The `cpg-reflex` space: the layer's weights as they are (p = u), the CPG's own fields by `base.<name>`; a
+    tuning log's weights load back into the params; a bound on the weights or a misshapen array is refused."""
+    from hexjax.tune.config import load_tune_config
+    from hexjax.tune.objective import Problem
+    from hexjax.tune.space import make_space, with_values
+    problem = Problem.build(load_tune_config("cpg_reflex_grad"))
+    assert problem.space.names == ("net",) and type(problem.train_ctrl).__name__ == "ReflexController"
+    u = problem.space.init(problem.params0)
+    assert sum(np.size(x) for x in jax.tree_util.tree_leaves(u)) == problem.train_ctrl.n_params() == 3122
+    moved = jax.tree_util.tree_map(lambda x: x + 0.5, u)
+    p = problem.space.apply(moved, problem.params0)
+    for a, b in zip(jax.tree_util.tree_leaves(p.net), jax.tree_util.tree_leaves(problem.params0.net)):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b) + 0.5, rtol=1e-6)
+    logged = {k: jax.tree_util.tree_map(lambda x: np.asarray(x).tolist(), v)
+              for k, v in problem.space.physical(moved).items()}
+    back = with_values(problem.params0, logged)
+    for a, b in zip(jax.tree_util.tree_leaves(back.net), jax.tree_util.tree_leaves(p.net)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    with pytest.raises(ValueError, match=r"params: net.params.Dense_1.bias: must be finite with shape \(18,\)"):
+        bad = jax.tree_util.tree_map(lambda x: x, logged)
+        bad["net"]["params"]["Dense_1"]["bias"] = [0.0] * 17
+        with_values(problem.params0, bad)
+    assert make_space("cpg-reflex", {"base.lc_trim": {"min": -0.2, "max": 0.2}, "net": {}}).names == (
+        "base.lc_trim", "net")
+    with pytest.raises(ValueError, match=r"params.net: has no bounds"):
+        make_space("cpg-reflex", {"net": {"min": -1.0}})
+
+
+def test_the_evolution_strategy_suits_the_dimension():
+    """`es_strategy: auto`: CMA-ES's full covariance for the tactile preset's few numbers, sep-CMA-ES for the
+    layer's 3,122; a strategy evosax lacks here is refused naming the choices."""
+    import dataclasses
+
+    from hexjax.tune.config import load_tune_config
+    from hexjax.tune.es import strategy
+    from hexjax.tune.objective import Problem
+    for name, want in (("tactile_tripod", "cma_es"), ("cpg_reflex_grad", "sep_cma_es")):
+        cfg = load_tune_config(name)
+        problem = Problem.build(cfg)
+        assert strategy(cfg, problem.space.init(problem.params0)) == want
+    assert strategy(dataclasses.replace(cfg, es_strategy="snes"), None) == "snes"
+    with pytest.raises(ValueError, match=r"tune.es_strategy='openai': use one of \('auto', 'cma_es'"):
+        load_tune_config("cpg_reflex_grad", {"es_strategy": "openai"})

@@ -11,7 +11,7 @@ own and no caller keeps a chain of `isinstance` tests.
 from __future__ import annotations
 
 import dataclasses
-from typing import Callable, Dict
+from typing import Callable, Dict, Optional
 
 from hexjax.control.base import Controller
 
@@ -21,6 +21,7 @@ class ControllerEntry:
     make: Callable[..., Controller]  # make(robot, gait=..., **fields) -> controller
     robot: str  # the robot preset the controller was written for
     about: str
+    base: Optional[str] = None  # a learned reflex layer's controller: the entry it is laid over
 
 
 def _gait(robot, gait="tripod", **kw):
@@ -70,9 +71,9 @@ CONTROLLERS: Dict[str, ControllerEntry] = {
     "perceive": ControllerEntry(_perceive, "luneckas2020", "the avoiding gait steered by what a range sensor "
                                 "perceives (Kinect V1 preset: scan, grid map, RANSAC, circles)"),
     "cpg-reflex": ControllerEntry(_reflex("cpg"), "yu2019", "the Yu 2019 CPG under a learned reflex layer "
-                                  "(joint-target offsets from the senses, zero at the start)"),
+                                  "(joint-target offsets from the senses, zero at the start)", base="cpg"),
     "gait-reflex": ControllerEntry(_reflex("gait"), "luneckas2020", "the Luneckas 2020 gait under a learned reflex "
-                                   "layer (joint-target offsets from the senses, zero at the start)"),
+                                   "layer (joint-target offsets from the senses, zero at the start)", base="gait"),
 }
 
 
@@ -81,3 +82,8 @@ def make_controller(name: str, robot, gait: str = "tripod", **fields) -> Control
     if name not in CONTROLLERS:
         raise ValueError(f"controller={name!r}: use one of {', '.join(CONTROLLERS)}")
     return CONTROLLERS[name].make(robot, gait=gait, **fields)
+
+
+def paper_controller(name: str) -> str:
+    """The paper's controller a registered controller runs: the one a reflex layer is laid over, or itself."""
+    return CONTROLLERS[name].base or name if name in CONTROLLERS else name

@@ -81,6 +81,17 @@ def run(o, entry) -> Dict:
     return res
 
 
+def _change(start, final) -> str:
+    """A tuned field's start -> final; a pytree field (a reflex layer's weights) as its size and how far it moved."""
+    if not isinstance(final, dict):
+        return f"{start} -> {final}"
+    import jax
+    import numpy as np
+    a = np.concatenate([np.ravel(x) for x in jax.tree_util.tree_leaves(start)])
+    b = np.concatenate([np.ravel(x) for x in jax.tree_util.tree_leaves(final)])
+    return f"{b.size:,} numbers, moved by {np.linalg.norm(b - a):.3g} (RMS {np.sqrt(np.mean((b - a) ** 2)):.2g})"
+
+
 def report(res: Dict) -> str:
     lines = []
     for r in res["runs"]:
@@ -95,6 +106,6 @@ def report(res: Dict) -> str:
             lines.append(f"  {r['skipped_steps']} step(s) skipped for a non-finite gradient (docs/tuning.md, "
                          f"\"Non-finite steps\")")
         for k, v in r["params_final"].items():
-            lines.append(f"  {k}: {r['params_start'][k]} -> {v}")
+            lines.append(f"  {k}: " + _change(r["params_start"][k], v))
     lines.append(f"logs, checkpoints and plots under {res['out']}/")
     return "\n".join(lines)

@@ -17,6 +17,8 @@ OPTIMIZERS = ("adam", "sgd")
 ESTIMATORS = ("first_order", "hybrid")
 GATES = ("smooth", "straight_through")
 BACKWARDS = ("sequential", "parallel", "forward")
+ES_STRATEGIES = ("auto", "cma_es", "sep_cma_es", "snes")
+ES_FULL_MAX = 100  # tuned numbers up to which `es_strategy: auto` keeps CMA-ES's full covariance
 
 
 @dataclasses.dataclass(frozen=True)
@@ -91,6 +93,9 @@ class TuneConfig:
     # the rollout CMA-ES scores: 'smooth' (the gradient's training objective) or 'hard' (the evaluated one; for
     # a controller whose smooth form walks unlike its hard form, e.g. the CPG at Table 1's rate, docs/tuning.md)
     es_objective: str = "smooth"
+    # the evolution strategy (evosax): 'cma_es' (full covariance), 'sep_cma_es' (diagonal), 'snes' (separable
+    # natural ES), or 'auto': CMA-ES up to `ES_FULL_MAX` tuned numbers, sep-CMA-ES above
+    es_strategy: str = "auto"
 
     @property
     def terrains(self) -> Tuple[str, ...]:
@@ -119,6 +124,8 @@ class TuneConfig:
                 load_values(self.start)
             except ValueError as err:
                 raise ValueError(f"tune.start={self.start!r}: {err}") from None
+        if self.es_strategy not in ES_STRATEGIES:
+            raise ValueError(f"tune.es_strategy={self.es_strategy!r}: use one of {ES_STRATEGIES}")
         if self.es_objective not in ("smooth", "hard"):
             raise ValueError(f"tune.es_objective={self.es_objective!r}: use 'smooth' or 'hard'")
         if self.gates not in GATES:
@@ -127,9 +134,11 @@ class TuneConfig:
             raise ValueError(f"tune.estimator={self.estimator!r}: use one of {ESTIMATORS}")
         if not (isinstance(self.zo_pairs, int) and not isinstance(self.zo_pairs, bool) and self.zo_pairs >= 1):
             raise ValueError(f"tune.zo_pairs={self.zo_pairs!r}: must be an integer >= 1")
-        if self.controller == "cpg" and self.gait not in ("tripod", "tetrapod", "wave"):
+        from hexjax.control.registry import paper_controller
+        kind = paper_controller(self.controller)
+        if kind == "cpg" and self.gait not in ("tripod", "tetrapod", "wave"):
             raise ValueError(f"tune.gait={self.gait!r}: the cpg controller walks 'tripod', 'tetrapod' or 'wave'")
-        if self.controller == "tactile" and self.gait not in ("tripod", "wave"):
+        if kind == "tactile" and self.gait not in ("tripod", "wave"):
             raise ValueError(f"tune.gait={self.gait!r}: the tactile gait walks 'tripod' or 'wave'")
         if not (isinstance(self.validation_batch, int) and self.validation_batch >= 0):
             raise ValueError(f"tune.validation_batch={self.validation_batch!r}: must be an integer >= 0")

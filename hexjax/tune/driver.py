@@ -73,6 +73,8 @@ def config_digest(cfg: TuneConfig, method: str, also_drop: tuple = ()) -> str:
         drop.append("train_physics")
     if cfg.start is None:  # likewise; a start names its numbers too, so an edited preset starts afresh
         drop.append("start")
+    if method == "grad" or cfg.es_strategy == "auto":  # auto was CMA-ES for every config before the key
+        drop.append("es_strategy")
     else:
         d["start"] = [cfg.start, load_values(cfg.start)]
     for k in drop:
@@ -202,8 +204,13 @@ def _last_held(log) -> float:
     return math.nan
 
 
+def _listed(v):
+    """An array as nested lists; a pytree field (a mapping of arrays: the reflex layer's weights) leaf by leaf."""
+    return {k: _listed(x) for k, x in v.items()} if isinstance(v, dict) else np.asarray(v).tolist()
+
+
 def _jsonable(d):
-    return {k: np.asarray(v).tolist() for k, v in d.items()}
+    return {k: _listed(v) for k, v in d.items()}
 
 
 def _finish(problem: Problem, log, out_dir: str, method: str) -> Dict[str, Any]:
@@ -240,7 +247,7 @@ def write_params_preset(res: Dict[str, Any], path: str) -> None:
                        "step": res["final"]["step"], "rollouts": res["final"]["rollouts"],
                        "held_out_objective": float(res["final"]["held_out"]["objective"]),
                        "start_held_out_objective": float(res["start"]["held_out"]["objective"])},
-           "values": {k: np.asarray(v).tolist() for k, v in res["final"]["params"].items()}}
+           "values": {k: _listed(v) for k, v in res["final"]["params"].items()}}
     with open(path, "w") as f:
         f.write("# Params picked by `hexjax tune` (its log.json beside this file); a params preset: docs/configs.md.\n")
         yaml.safe_dump(doc, f, sort_keys=False, default_flow_style=None)
@@ -250,7 +257,7 @@ def _training_label(res: Dict[str, Any]) -> str:
     """What the training curve is: CMA-ES logs its population's mean objective, the gradient its batch's, on
     the smooth rollout or the hard one (`es_objective`, `gates`)."""
     cfg = res["config"]
-    if res["method"].startswith("cma-es"):
+    if "(pop " in res["method"]:  # an evolution strategy's label names its population
         return f"training batch ({cfg.get('es_objective', 'smooth')}, population mean)"
     return "training batch (hard forward)" if cfg.get("gates") == "straight_through" else "training batch (smooth)"
 

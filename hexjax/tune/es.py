@@ -1,5 +1,6 @@
-"""The evolution-strategy baseline: CMA-ES (evosax) on the same unconstrained params, smooth objective and
-terrain stream as the gradient tuner, given its rollout budget or its wall time (docs/tuning.md)."""
+"""The evolution-strategy baseline: an evosax strategy on the same unconstrained params, smooth objective and
+terrain stream as the gradient tuner, given its rollout budget or its wall time (docs/tuning.md): CMA-ES for a
+few numbers, sep-CMA-ES (a diagonal covariance) or SNES where a full covariance would not pay (`es_strategy`)."""
 
 from __future__ import annotations
 
@@ -8,16 +9,28 @@ from typing import Any, Dict, Optional
 
 import jax
 import jax.numpy as jnp
-from evosax.algorithms import CMA_ES
+from evosax.algorithms import CMA_ES, SNES, Sep_CMA_ES
 
-from hexjax.tune.config import TuneConfig
+from hexjax.tune.config import ES_FULL_MAX, TuneConfig
 from hexjax.tune.driver import cached, config_digest, drive, program_digest
 from hexjax.tune.objective import Problem, per_env_objective
 
 
+STRATEGIES = {"cma_es": CMA_ES, "sep_cma_es": Sep_CMA_ES, "snes": SNES}
+
+
+def strategy(cfg: TuneConfig, u0) -> str:
+    """The strategy `cfg.es_strategy` names; for 'auto', CMA-ES up to `ES_FULL_MAX` numbers in u0, else
+    sep-CMA-ES (a full covariance of n^2 entries, learnt from a population of 8, does not pay at n = 1,000)."""
+    if cfg.es_strategy != "auto":
+        return cfg.es_strategy
+    n = sum(int(jnp.size(x)) for x in jax.tree_util.tree_leaves(u0))
+    return "cma_es" if n <= ES_FULL_MAX else "sep_cma_es"
+
+
 def tune_es(cfg: TuneConfig, out_dir: str, rollouts: int, resume: bool = True, progress: bool = True,
             time_limit: Optional[float] = None) -> Dict[str, Any]:
-    """CMA-ES (evosax) on the same unconstrained params and the same smooth training objective (or, with
+    """The evosax strategy of `strategy(cfg)` (CMA-ES, sep-CMA-ES or SNES) on the same unconstrained params and the same smooth training objective (or, with
     `es_objective: hard`, the hard form that evaluation uses: CMA-ES needs no gradient), with the same
     terrain stream: generation k evaluates every member of its population on the `train_batch`
     terrains of step k. It stops after `rollouts` rollouts (population x train_batch per generation), so it
@@ -27,7 +40,8 @@ def tune_es(cfg: TuneConfig, out_dir: str, rollouts: int, resume: bool = True, p
     problem = Problem.build(cfg)
     u0 = problem.space.init(problem.params0)
     pop = cfg.es_population
-    es = CMA_ES(population_size=pop, solution=u0)
+    name = strategy(cfg, u0)
+    es = STRATEGIES[name](population_size=pop, solution=u0)
     es_params = es.default_params.replace(std_init=jnp.float32(cfg.es_sigma))
     key = jax.random.PRNGKey(cfg.seed + 7)
     digest = config_digest(cfg, f"es{pop}")
@@ -60,5 +74,5 @@ def tune_es(cfg: TuneConfig, out_dir: str, rollouts: int, resume: bool = True, p
 
     # evaluate whenever the rollouts used cross a multiple of the gradient run's evaluation period
     should_eval = lambda gen: (gen * pop) // cfg.eval_every > ((gen - 1) * pop) // cfg.eval_every
-    return drive(problem, out_dir, f"cma-es (pop {pop})", digest, es.init(key, u0, es_params), es.get_mean,
+    return drive(problem, out_dir, f"{name.replace('_', '-')} (pop {pop})", digest, es.init(key, u0, es_params), es.get_mean,
                   advance, max(1, rollouts // (pop * B)), pop * B, should_eval, resume, progress, time_limit, t_start)

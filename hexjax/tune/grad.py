@@ -11,6 +11,7 @@ import jax
 import optax
 from tqdm.auto import tqdm
 
+from hexjax.control.registry import paper_controller
 from hexjax.tune.config import TuneConfig
 from hexjax.tune.driver import cached, config_digest, drive, nonfinite_note, program_digest
 from hexjax.tune.hybrid import hybrid_value_and_grad
@@ -54,7 +55,7 @@ def tune(cfg: TuneConfig, out_dir: str, resume: bool = True, progress: bool = Tr
                          "forward-mode gradient (backward: forward needs the pyramidal cone); use backward: "
                          "sequential or parallel")
     iterations = problem.physics().iterations
-    if cfg.controller == "cpg" and iterations < 4:
+    if paper_controller(cfg.controller) == "cpg" and iterations < 4:
         print(f"note: the CPG on yu2019 needs solver_iterations >= 4 for gradients that agree with finite "
               f"differences (docs/tuning.md); this config runs {iterations}")
     u0 = problem.space.init(problem.params0)

@@ -40,7 +40,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
-from hexjax.control.registry import CONTROLLERS, make_controller
+from hexjax.control.reflex import ReflexController, ReflexParams
+from hexjax.control.registry import CONTROLLERS, make_controller, paper_controller
 from hexjax.sim.compiled import arrays_digest
 from hexjax.sim.config import PhysicsConfig, RolloutConfig, physics_for
 from hexjax.sim.metrics import error_stats, travel_errors
@@ -281,12 +282,17 @@ def _controller(cfg: TuneConfig, robot, smooth: bool):
         return c, p0, dur
     p = with_values(p0, load_values(cfg.start), source=f"tune.start={cfg.start}")
     c.validate_params(p)
-    if cfg.controller == "tactile" and "swing_time" not in cfg.space().names:
+    if paper_controller(cfg.controller) == "tactile" and "swing_time" not in cfg.space().names:
         dur = dur * float(p.swing_time) / float(p0.swing_time)  # a slower started gait needs the longer walk
     return c, p, dur
 
 
 def _hand_rules(cfg: TuneConfig, robot, smooth: bool):
+    base = CONTROLLERS[cfg.controller].base
+    if base is not None:  # a learned reflex layer over the base's hand-ruled controller, untrained
+        c, p, dur = _hand_rules(dataclasses.replace(cfg, controller=base, params={}), robot, smooth)
+        layer = ReflexController(c)
+        return layer, ReflexParams(base=p, net=layer.init_net()), dur
     st = smooth and cfg.gates == "straight_through"
     if cfg.controller == "tactile":
         c, dur = make_controller("tactile", robot, gait=cfg.gait, max_obstacle_height=cfg.max_obstacle_height,

@@ -11,7 +11,9 @@ Presets follow the papers' hand rules and the robots' reach:
   the pad threshold;
 - "cpg" (Yu 2019, `CPGController`): the linear converters' trims (g, h per joint, swing and stance), the
   F_contact thresholds, T_s, and the elevator's regenerated clearance; named in a config, also each leg's own
-  trims, clearance offset and threshold factors (`PER_LEG`, 96 numbers).
+  trims, clearance offset and threshold factors (`PER_LEG`, 96 numbers);
+- "cpg-reflex" (`hexjax.control.reflex` over the CPG): the reflex layer's weights, `net`, unbounded (`Free`: p = u,
+  over every array of the field's pytree); named in a config, also the CPG's fields as `base.<field>`.
 """
 
 from __future__ import annotations
@@ -39,13 +41,23 @@ class Bound:
             raise ValueError(f"params.{name}: min={self.lo!r} must be < max={self.hi!r} (both finite)")
 
 
+@dataclasses.dataclass(frozen=True)
+class Free:
+    """No bound: p = u, for a field that is a pytree of arrays (a network's weights)."""
+
+    def validate(self, name: str) -> None:
+        pass
+
+
 def _softplus_inv(x):
     # log(exp(x) - 1), written to stay finite for large x
     return x + jnp.log(-jnp.expm1(-x))
 
 
 def to_physical(u, b: Bound):
-    """Unconstrained u -> bounded p (sigmoid to [lo, hi], or lo + softplus)."""
+    """Unconstrained u -> bounded p (sigmoid to [lo, hi], or lo + softplus; `Free`: u itself)."""
+    if isinstance(b, Free):
+        return u
     if b.hi is None:
         return b.lo + jax.nn.softplus(u)
     # the clip only removes float32 rounding past a bound (its gradient there is ~0 anyway)
@@ -54,6 +66,8 @@ def to_physical(u, b: Bound):
 
 def to_unconstrained(p, b: Bound, margin: float = 1e-6):
     """Inverse of `to_physical`; p is pulled inside the open interval by `margin` (relative) first."""
+    if isinstance(b, Free):
+        return jax.tree_util.tree_map(lambda x: jnp.asarray(x, jnp.float32), p)
     p = jnp.asarray(p, jnp.float32)
     if b.hi is None:
         return _softplus_inv(jnp.maximum(p - b.lo, margin * max(1.0, abs(b.lo))))
@@ -90,6 +104,9 @@ def with_values(params, values: Mapping[str, Any], source: str = "params"):
     for name, v in values.items():
         if not _has(params, name):
             raise ValueError(f"{source}: {name}: unknown parameter for this controller")
+        if isinstance(_get(params, name), Mapping):  # a pytree field (`Free`): its arrays in the same tree
+            params = _set(params, name, _tree_values(_get(params, name), v, f"{source}: {name}"))
+            continue
         old = jnp.asarray(_get(params, name))
         try:
             new = np.asarray(v, dtype=float)
@@ -99,6 +116,21 @@ def with_values(params, values: Mapping[str, Any], source: str = "params"):
             raise ValueError(f"{source}: {name}={new.tolist()!r}: must be finite with shape {old.shape}")
         params = _set(params, name, jnp.asarray(new, old.dtype))
     return params
+
+
+def _tree_values(old, new, where: str):
+    """`old`'s tree (nested mappings of arrays) with `new`'s numbers, every key, shape and number checked."""
+    if isinstance(old, Mapping):
+        if not isinstance(new, Mapping) or set(new) != set(old):
+            raise ValueError(f"{where}: expected the keys {sorted(old)}")
+        return {k: _tree_values(old[k], new[k], f"{where}.{k}") for k in old}
+    try:
+        arr = np.asarray(new, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"{where}: must be an array of numbers") from None
+    if arr.shape != np.shape(old) or not np.all(np.isfinite(arr)):
+        raise ValueError(f"{where}: must be finite with shape {np.shape(old)}")
+    return jnp.asarray(arr, jnp.asarray(old).dtype)
 
 
 def load_values(path: str) -> Dict[str, Any]:
@@ -149,6 +181,10 @@ class ParamSpace:
             b.validate(name)
             if not _has(params, name):
                 raise ValueError(f"params.{name}: unknown parameter for this controller")
+            if isinstance(b, Free):
+                if not all(np.all(np.isfinite(np.asarray(x))) for x in jax.tree_util.tree_leaves(_get(params, name))):
+                    raise ValueError(f"params.{name}: the starting value is not finite")
+                continue
             v = np.asarray(_get(params, name), dtype=float)
             hi = math.inf if b.hi is None else b.hi
             if not np.all(np.isfinite(v)) or np.any(v < b.lo) or np.any(v > hi):
@@ -162,12 +198,13 @@ class ParamSpace:
     def apply(self, u: Mapping[str, Any], params):
         """`params` with each tuned field replaced by to_physical(u[field]) (pure, differentiable)."""
         for name, b in self.bounds:
-            params = _set(params, name, to_physical(u[name], b).astype(jnp.asarray(_get(params, name)).dtype))
+            params = _set(params, name, jax.tree_util.tree_map(lambda x, old: x.astype(jnp.asarray(old).dtype),
+                                                               to_physical(u[name], b), _get(params, name)))
         return params
 
     def physical(self, u: Mapping[str, Any]) -> Dict[str, np.ndarray]:
         """The physical values of u, as numpy, for logs."""
-        return {name: np.asarray(to_physical(u[name], b)) for name, b in self.bounds}
+        return {name: jax.tree_util.tree_map(np.asarray, to_physical(u[name], b)) for name, b in self.bounds}
 
 
 SPACES: Dict[str, Dict[str, Bound]] = {
@@ -203,9 +240,15 @@ PER_LEG: Dict[str, Dict[str, Bound]] = {
 }
 
 
+# The reflex layer over the CPG (`hexjax.control.reflex`): its weights, and the CPG's own fields where a config
+# names them (`base.lc_trim`, ...)
+SPACES["cpg-reflex"] = {"net": Free()}
+PER_LEG["cpg-reflex"] = {f"base.{k}": b for k, b in {**SPACES["cpg"], **PER_LEG["cpg"]}.items()}
+
+
 def make_space(controller: str, overrides: Optional[Mapping[str, Mapping[str, float]]] = None,
                only: Optional[list] = None) -> ParamSpace:
-    """The preset space of `controller` ('tactile' or 'cpg'), restricted to `only` (field names) and with
+    """The preset space of `controller` ('tactile', 'cpg' or 'cpg-reflex'), restricted to `only` (field names) and with
     bounds replaced from `overrides` ({field: {"min": lo, "max": hi}}, as in configs/tune/*.yaml). The per-leg
     fields (`PER_LEG`) join only when `only` names them."""
     if controller not in SPACES:
@@ -219,6 +262,11 @@ def make_space(controller: str, overrides: Optional[Mapping[str, Mapping[str, fl
     for name, o in (overrides or {}).items():
         if not isinstance(o, Mapping):
             raise ValueError(f"params.{name}={o!r}: must be a mapping of min and max")
+        if isinstance(known[name], Free):
+            if o:
+                raise ValueError(f"params.{name}: has no bounds (a network's weights); give it as {{}}")
+            base[name] = Free()
+            continue
         unknown = set(o) - {"min", "max"}
         if unknown:
             raise ValueError(f"params.{name}: unknown keys {sorted(unknown)}; use min and max")
