@@ -104,3 +104,17 @@ def test_the_evolution_strategy_suits_the_dimension():
     assert strategy(dataclasses.replace(cfg, es_strategy="snes"), None) == "snes"
     with pytest.raises(ValueError, match=r"tune.es_strategy='openai': use one of \('auto', 'cma_es'"):
         load_tune_config("cpg_reflex_grad", {"es_strategy": "openai"})
+
+
+def test_a_layer_preset_runs_the_yu2019_experiment_under_the_layer():
+    """`hexjax experiment yu2019-step --params <a reflex preset>`: the preset's `net` makes the experiment run the
+    CPG under the layer; an untrained layer's preset gives the paper's figures to the last digit (MuJoCo C, a
+    short walk of 2 envs a row)."""
+    from hexjax.experiments.yu2019 import run_experiment
+    from hexjax.tune.driver import _jsonable
+    net = make_controller("cpg-reflex", get_robot("yu2019")).init_net()
+    preset = _jsonable({"net": net})  # as a params preset's YAML holds it
+    kw = dict(batch=2, duration=3.0, record=True, progress=False)
+    paper, layer = run_experiment("yu2019-step", **kw), run_experiment("yu2019-step", params=preset, **kw)
+    assert layer["config"]["params"] == {"net": "3,122 numbers (a learned reflex layer)"}
+    assert layer["results"] == paper["results"]

@@ -17,6 +17,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from hexjax.control.cpg import MODE_NAMES, TRIPOD_GROUP, CPGController
+from hexjax.control.reflex import ReflexController
 from hexjax.control.registry import make_controller
 from hexjax.sim.metrics import paired
 from hexjax.experiments.registry import experiment
@@ -24,7 +25,7 @@ from hexjax.sim.config import RolloutConfig
 from hexjax.sim.engines import TRACES
 from hexjax.sim.physics import pick, shared_config
 from hexjax.sim.rollout import rollout
-from hexjax.tune.space import load_values, with_values
+from hexjax.tune.space import load_values, summed_up, with_values
 from hexjax.world.presets import get_robot, get_terrain
 from hexjax.world.robot import LEG_NAMES, leg_fk
 from hexjax.world.terrain import sample
@@ -174,17 +175,19 @@ def run_experiment(name: str, batch: int = 32, seed: int = 0, duration: Optional
         raise ValueError(f"duration={duration!r}: must be a finite number of seconds > 0")
     robot = get_robot(ex["robot"])
     preset = pick(physics, needs=NEEDS)  # a step's success reads the foot traces
+    # a tuned reflex layer's preset (its weights, `net`) runs the CPG under that layer (`hexjax.control.reflex`)
+    ctrl = make_controller("cpg-reflex" if params and "net" in params else "cpg", robot)
+    cpg = ctrl.base if isinstance(ctrl, ReflexController) else ctrl
     if params:
-        with_values(make_controller("cpg", robot).default_params(), params)  # a wrong name or shape fails here
+        with_values(ctrl.default_params(), params)  # a wrong name or shape fails here
     variants = list(ex["variants"].items())
     stumble_tilt = math.radians(ex["stumble_tilt_deg"])
     out = {"config": {"experiment": name, "robot": robot.name, "batch": batch, "seed": seed, "duration_s": dur,
                       "terrains": list(ex["terrains"]), "variants": [v for v, _ in variants],
                       "stumble_tilt_deg": math.degrees(stumble_tilt),
                       "solver_iterations": preset.settings.iterations,
-                      "params": {k: np.asarray(v).tolist() for k, v in (params or {}).items()} or "the paper's"},
+                      "params": {k: summed_up(v) for k, v in (params or {}).items()} or "the paper's"},
            "results": {}, "_records": {}, "timing": [], "physics": preset.record()}
-    ctrl = make_controller("cpg", robot)
     rows = [(t, v, o or {}) for t in ex["terrains"] for v, o in variants]
     specs = {t: get_terrain(t, **ex.get("terrain_overrides", {})) for t in ex["terrains"]}
     sampled = {t: sample(spec, jax.random.PRNGKey(seed), batch) for t, spec in specs.items()}
@@ -207,6 +210,8 @@ def run_experiment(name: str, batch: int = 32, seed: int = 0, duration: Optional
                         # the step's success and the ditch floor read the foot traces
                         config=RolloutConfig(record=True),
                         params_batched=True, stats=True)
+        if isinstance(ctrl, ReflexController):  # the CPG's own state under its learned reflex layer
+            s = s.replace(final_state=s.final_state.base)
         out["timing"].append({"rows": [f"{rows[i][0]} / {rows[i][1]}" for i in idx], "envs": batch * len(idx),
                               "wall_s": round(st.wall_s, 1), "compile_s": round(st.compile_s, 1)})
         for j, i in enumerate(idx):
@@ -217,7 +222,7 @@ def run_experiment(name: str, batch: int = 32, seed: int = 0, duration: Optional
     for i, (terrain_name, label, _) in enumerate(rows):
         s, terrain = summaries[i]
         spec = specs[terrain_name]
-        out["results"].setdefault(terrain_name, {})[label] = _summarise(ctrl, robot, s, terrain, spec.kind,
+        out["results"].setdefault(terrain_name, {})[label] = _summarise(cpg, robot, s, terrain, spec.kind,
                                                                         stumble_tilt)
         if record:
             env = int(np.argmax(np.asarray(s.final_state.n_elev.sum(-1) + s.final_state.n_search.sum(-1))))

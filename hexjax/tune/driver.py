@@ -73,10 +73,10 @@ def config_digest(cfg: TuneConfig, method: str, also_drop: tuple = ()) -> str:
         drop.append("train_physics")
     if cfg.start is None:  # likewise; a start names its numbers too, so an edited preset starts afresh
         drop.append("start")
-    if method == "grad" or cfg.es_strategy == "auto":  # auto was CMA-ES for every config before the key
-        drop.append("es_strategy")
     else:
         d["start"] = [cfg.start, load_values(cfg.start)]
+    if method == "grad" or cfg.es_strategy == "auto":  # auto was CMA-ES for every config before the key
+        drop.append("es_strategy")
     for k in drop:
         d.pop(k)
     for k in also_drop:

@@ -30,8 +30,9 @@ def strategy(cfg: TuneConfig, u0) -> str:
 
 def tune_es(cfg: TuneConfig, out_dir: str, rollouts: int, resume: bool = True, progress: bool = True,
             time_limit: Optional[float] = None) -> Dict[str, Any]:
-    """The evosax strategy of `strategy(cfg)` (CMA-ES, sep-CMA-ES or SNES) on the same unconstrained params and the same smooth training objective (or, with
-    `es_objective: hard`, the hard form that evaluation uses: CMA-ES needs no gradient), with the same
+    """The evosax strategy of `strategy(cfg)` (CMA-ES, sep-CMA-ES or SNES) on the same unconstrained params and
+    the same smooth training objective (or, with `es_objective: hard`, the hard form that evaluation uses: an ES
+    needs no gradient), with the same
     terrain stream: generation k evaluates every member of its population on the `train_batch`
     terrains of step k. It stops after `rollouts` rollouts (population x train_batch per generation), so it
     can be given exactly the gradient run's budget. Its starting mean is the hand rules; its step size is
@@ -74,5 +75,6 @@ def tune_es(cfg: TuneConfig, out_dir: str, rollouts: int, resume: bool = True, p
 
     # evaluate whenever the rollouts used cross a multiple of the gradient run's evaluation period
     should_eval = lambda gen: (gen * pop) // cfg.eval_every > ((gen - 1) * pop) // cfg.eval_every
-    return drive(problem, out_dir, f"{name.replace('_', '-')} (pop {pop})", digest, es.init(key, u0, es_params), es.get_mean,
+    label = f"{name.replace('_', '-')} (pop {pop})"
+    return drive(problem, out_dir, label, digest, es.init(key, u0, es_params), es.get_mean,
                   advance, max(1, rollouts // (pop * B)), pop * B, should_eval, resume, progress, time_limit, t_start)

@@ -133,6 +133,14 @@ def _tree_values(old, new, where: str):
     return jnp.asarray(arr, jnp.asarray(old).dtype)
 
 
+def summed_up(v):
+    """A field's value for a record: a number or nested lists as they are; a pytree field (a reflex layer's
+    weights) as its size, its thousands of numbers left to the params preset."""
+    if isinstance(v, Mapping):
+        return f"{sum(np.size(x) for x in jax.tree_util.tree_leaves(v)):,} numbers (a learned reflex layer)"
+    return np.asarray(v).tolist()
+
+
 def load_values(path: str) -> Dict[str, Any]:
     """Param values by name: a params preset (configs/params/<name>.yaml, or a .yaml path: its `values`
     mapping), a `hexjax tune` log.json (its picked iterate, "final") or a JSON file of a plain {name: value}

@@ -102,4 +102,3 @@ class Engine:
         """(Summary, seconds compiling, where the program came from: 'compiled', 'disk' or 'process') of a
         batch checked by `hexjax.sim.rollout.rollout`."""
         raise NotImplementedError
-

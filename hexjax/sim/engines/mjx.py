@@ -109,7 +109,7 @@ class MJX(Engine):
 # `Compiled.memory_analysis()`) grow by 210,524 bytes an env from B = 32 to 64 (2 CPU cores);
 # grad_bytes_per_env_step: the windowed value-and-gradient program of `tactile_tripod_validated` (0.2 s windows,
 # remat, implicit solve) holds 1,859 bytes an env and control step on one H100 (`hexjax bench --grad --batches
-# 4096 --walk 10`), 754 on 2 CPU cores (B = 4): the larger sizes both
+# 4096 --walk 10`), 754 on 2 CPU cores (B = 4); the larger figure sizes a batch on either
 MJX_ENGINE = MJX(name="mjx", title="MJX (JAX)", precision="float32", can=frozenset({GRADIENTS, MESH, RANGE_SENSORS,
                                                                                        TRACES}),
                  hosts=("cpu", "gpu"), culls=True, bytes_per_env=210_524, grad_bytes_per_env_step=1_859)
