@@ -14,7 +14,8 @@ perceptron (flax) of the senses x of one env, each scaled to order one:
 - each foot's contact force in the torso frame (6 x 3, over the robot's weight) and each shin pad's normal force
   (6, tanh of force / 1 N);
 - the joint angles (18, rad) and rates (18, x 0.1 s);
-- gravity in the torso frame (3) and the torso's angular rate from successive orientations (3, x 0.1 s);
+- the world's up direction in the torso frame (3: gravity's, reversed) and its rate of turn between control steps
+  (3, x 0.1 s), the torso's tilt and tilting rate;
 - the base controller's phase (`Controller.reflex_phase`): the gait clock's sine and cosine (Luneckas 2020), the
   leader oscillator of each leg's network (Yu 2019, 6 x 2).
 
@@ -64,7 +65,7 @@ class ReflexParams:
 @struct.dataclass
 class ReflexState:
     base: Any  # the base controller's state
-    up_prev: jax.Array  # (3,) gravity's direction in the torso frame at the previous step (its rate's estimate)
+    up_prev: jax.Array  # (3,) the world's up direction in the torso frame at the previous step (for its rate)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -140,7 +141,7 @@ class ReflexController(Controller):
         return self.base.initial_action(params.base)
 
     def senses(self, params: ReflexParams, state: ReflexState, obs) -> Tuple[jax.Array, jax.Array]:
-        """(x, up): the layer's inputs (module docstring) and gravity's direction in the torso frame."""
+        """(x, up): the layer's inputs (module docstring) and the world's up direction in the torso frame."""
         weight = float(self.robot.total_mass) * 9.81
         up = quat_to_body(obs.torso_quat, jnp.array([0.0, 0.0, 1.0]))
         x = jnp.concatenate([
