@@ -118,3 +118,30 @@ def test_a_layer_preset_runs_the_yu2019_experiment_under_the_layer():
     paper, layer = run_experiment("yu2019-step", **kw), run_experiment("yu2019-step", params=preset, **kw)
     assert layer["config"]["params"] == {"net": "3,122 numbers (a learned reflex layer)"}
     assert layer["results"] == paper["results"]
+
+
+def test_the_evolution_strategy_rolls_out_on_the_certified_engine():
+    """`es_rollouts: certified`: each member of a population is scored by the hard rollout on the evaluation
+    physics on this host's certified engine (MuJoCo C here), every member on the same terrains: member k's
+    score is the mean J of a rollout of member k alone."""
+    import dataclasses
+
+    from hexjax.sim.physics import pick, shared_config
+    from hexjax.sim.rollout import rollout
+    from hexjax.tune.config import load_tune_config
+    from hexjax.tune.es import population_objective
+    from hexjax.tune.objective import Problem, per_env_objective
+    cfg = load_tune_config("cpg_step_ditch", {"es_rollouts": "certified", "horizon": 2.0, "train_batch": 5})
+    problem = Problem.build(cfg)
+    u0 = problem.space.init(problem.params0)
+    moved = dict(u0, clearance=u0["clearance"] + 2.0)
+    pop_u = jax.tree_util.tree_map(lambda a, b: jnp.stack([a, b]), u0, moved)
+    terr, keys = problem.train_batch(0)
+    scores = np.asarray(population_objective(problem, 2, 5)(pop_u, terr, keys))
+    phys = pick(cfg.eval_physics)
+    alone = rollout(problem.robot, terr, problem.eval_ctrl, problem.space.apply(moved, problem.eval_params0),
+                    problem.duration, keys, physics=shared_config(phys, problem.specs), engine=phys.engine.name)
+    assert phys.engine.name == "c" and scores[0] != scores[1]
+    assert scores[1] == pytest.approx(float(np.mean(per_env_objective(alone, cfg.distance, cfg.objective))), abs=1e-6)
+    with pytest.raises(ValueError, match=r"tune.es_rollouts='certified' runs the evaluated \(hard\) rollout"):
+        dataclasses.replace(cfg, es_objective="smooth").validate()

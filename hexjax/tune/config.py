@@ -96,6 +96,10 @@ class TuneConfig:
     # the evolution strategy (evosax): 'cma_es' (full covariance), 'sep_cma_es' (diagonal), 'snes' (separable
     # natural ES), or 'auto': CMA-ES up to `ES_FULL_MAX` tuned numbers, sep-CMA-ES above
     es_strategy: str = "auto"
+    # where the evolution strategy's rollouts run: 'training' (MJX on the training physics, jitted with the
+    # population) or 'certified' (the hard form on `eval_physics` on the fastest engine certified for it on this
+    # host: MuJoCo Warp on a GPU, MuJoCo C on a CPU; needs es_objective: hard)
+    es_rollouts: str = "training"
 
     @property
     def terrains(self) -> Tuple[str, ...]:
@@ -128,6 +132,10 @@ class TuneConfig:
             raise ValueError(f"tune.es_strategy={self.es_strategy!r}: use one of {ES_STRATEGIES}")
         if self.es_objective not in ("smooth", "hard"):
             raise ValueError(f"tune.es_objective={self.es_objective!r}: use 'smooth' or 'hard'")
+        if self.es_rollouts not in ("training", "certified"):
+            raise ValueError(f"tune.es_rollouts={self.es_rollouts!r}: use 'training' or 'certified'")
+        if self.es_rollouts == "certified" and self.es_objective != "hard":
+            raise ValueError("tune.es_rollouts='certified' runs the evaluated (hard) rollout: set es_objective: hard")
         if self.gates not in GATES:
             raise ValueError(f"tune.gates={self.gates!r}: use one of {GATES}")
         if self.estimator not in ESTIMATORS:

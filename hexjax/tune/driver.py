@@ -77,6 +77,8 @@ def config_digest(cfg: TuneConfig, method: str, also_drop: tuple = ()) -> str:
         d["start"] = [cfg.start, load_values(cfg.start)]
     if method == "grad" or cfg.es_strategy == "auto":  # auto was CMA-ES for every config before the key
         drop.append("es_strategy")
+    if method == "grad" or cfg.es_rollouts == "training":  # likewise
+        drop.append("es_rollouts")
     for k in drop:
         d.pop(k)
     for k in also_drop:

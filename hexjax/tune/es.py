@@ -28,6 +28,43 @@ def strategy(cfg: TuneConfig, u0) -> str:
     return "cma_es" if n <= ES_FULL_MAX else "sep_cma_es"
 
 
+def population_objective(problem: Problem, pop: int, batch: int):
+    """f(population u (pop, ...), terrains, keys of `batch` envs) -> each member's mean J over the same envs:
+    params batched over pop x batch envs. `es_rollouts: training` jits it with MJX's rollout on the training
+    physics (a kept program); `certified` runs the hard rollout on the evaluation physics on the fastest
+    engine certified for it here (`hexjax.sim.rollout.rollout`)."""
+    cfg = problem.cfg
+    hard = cfg.es_objective == "hard"
+    start = problem.eval_params0 if hard else problem.params0
+    tile = lambda x: jnp.tile(x, (pop,) + (1,) * (x.ndim - 1))
+
+    def member_params(pop_u):
+        flat_p = jax.vmap(lambda uu: problem.space.apply(uu, start))(pop_u)
+        return jax.tree_util.tree_map(lambda x: jnp.repeat(x, batch, axis=0), flat_p)
+
+    if cfg.es_rollouts == "certified":
+        from hexjax.sim.physics import pick, shared_config
+        from hexjax.sim.rollout import rollout
+        phys = pick(cfg.eval_physics)
+        config = shared_config(phys, problem.specs)
+
+        def certified(pop_u, terr, keys):
+            s = rollout(problem.robot, jax.tree_util.tree_map(tile, terr), problem.eval_ctrl, member_params(pop_u),
+                        problem.duration, tile(keys), physics=config, engine=phys.engine.name, params_batched=True)
+            return per_env_objective(s, cfg.distance, cfg.objective).reshape(pop, batch).mean(1)
+        return certified
+
+    model, fn = (problem.hard_rollout(params_batched=True) if hard else
+                 problem.train_rollout(grad=False, params_batched=True))
+
+    def population_loss(pop_u, terr, keys):
+        s = fn(model, member_params(pop_u), jax.tree_util.tree_map(tile, terr), tile(keys))
+        return per_env_objective(s, cfg.distance, cfg.objective).reshape(pop, batch).mean(1)
+
+    program = program_digest(cfg, f"es{pop}")
+    return cached(program + "/pop", lambda: jax.jit(population_loss), problem.static("es/pop", program))
+
+
 def tune_es(cfg: TuneConfig, out_dir: str, rollouts: int, resume: bool = True, progress: bool = True,
             time_limit: Optional[float] = None) -> Dict[str, Any]:
     """The evosax strategy of `strategy(cfg)` (CMA-ES, sep-CMA-ES or SNES) on the same unconstrained params and
@@ -46,23 +83,8 @@ def tune_es(cfg: TuneConfig, out_dir: str, rollouts: int, resume: bool = True, p
     es_params = es.default_params.replace(std_init=jnp.float32(cfg.es_sigma))
     key = jax.random.PRNGKey(cfg.seed + 7)
     digest = config_digest(cfg, f"es{pop}")
-    hard = cfg.es_objective == "hard"
-    model, fn = (problem.hard_rollout(params_batched=True) if hard else
-                 problem.train_rollout(grad=False, params_batched=True))
-    start = problem.eval_params0 if hard else problem.params0
     B = cfg.train_batch
-
-    # every member on the same terrains: params batched over pop x B envs
-    def population_loss(pop_u, terr, keys):
-        tile = lambda x: jnp.tile(x, (pop,) + (1,) * (x.ndim - 1))
-        flat_p = jax.vmap(lambda uu: problem.space.apply(uu, start))(pop_u)
-        params = jax.tree_util.tree_map(lambda x: jnp.repeat(x, B, axis=0), flat_p)
-        s = fn(model, params, jax.tree_util.tree_map(tile, terr), tile(keys))
-        j = per_env_objective(s, cfg.distance, cfg.objective)
-        return j.reshape(pop, B).mean(1)
-
-    program = program_digest(cfg, f"es{pop}")
-    pop_loss = cached(program + "/pop", lambda: jax.jit(population_loss), problem.static("es/pop", program))
+    pop_loss = population_objective(problem, pop, B)
 
     def advance(state, gen):
         k_ask, k_tell = jax.random.split(jax.random.fold_in(key, gen))
