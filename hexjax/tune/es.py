@@ -69,9 +69,8 @@ def tune_es(cfg: TuneConfig, out_dir: str, rollouts: int, resume: bool = True, p
             time_limit: Optional[float] = None) -> Dict[str, Any]:
     """The evosax strategy of `strategy(cfg)` (CMA-ES, sep-CMA-ES or SNES) on the same unconstrained params and
     the same smooth training objective (or, with `es_objective: hard`, the hard form that evaluation uses: an ES
-    needs no gradient), with the same
-    terrain stream: generation k evaluates every member of its population on the `train_batch`
-    terrains of step k. It stops after `rollouts` rollouts (population x train_batch per generation), so it
+    needs no gradient; `es_rollouts`: where it runs, `population_objective`), with the same terrain stream:
+    generation k evaluates every member of its population on the `train_batch` terrains of step k. It stops after `rollouts` rollouts (population x train_batch per generation), so it
     can be given exactly the gradient run's budget. Its starting mean is the hand rules; its step size is
     `cfg.es_sigma` on the unconstrained scale. Held-out evaluations of the mean as for `tune`."""
     t_start = time.perf_counter()
