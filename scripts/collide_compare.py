@@ -16,12 +16,13 @@ About a minute on 2 CPU cores (MJX's collision compiles once per shape)."""
 from __future__ import annotations
 
 import argparse
-import json
 
 import jax
 import mujoco
 import numpy as np
 from mujoco import mjx
+
+from hexjax.experiments.runner import write_json
 
 HALF = np.array([0.05, 0.05, 0.02])
 SHALLOW = 0.002  # m: the deepest penetration compared (a walk's contacts stay within about 1 mm)
@@ -129,8 +130,7 @@ def main():
                   f"{r['matched']:8d} {r['only_c']:7d} {r['only_mjx']:9d} "
                   f"{r['max_ddist_mm']:16.3f} {r['max_dnormal_deg']:17.2f} {r['max_dpoint_mm']:15.3f}")
     if o.json:
-        with open(o.json, "w") as f:
-            json.dump(out, f, indent=1)
+        write_json(o.json, out)
         print(f"wrote {o.json}")
 
 

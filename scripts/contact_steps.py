@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import json
 import os
 
 os.environ.setdefault("HEXJAX_CACHE_DIR", "off")  # the walk's program is traced anew: it may swap MJX's routines
@@ -29,6 +28,7 @@ import numpy as np
 from mujoco import mjx
 
 from hexjax.control.registry import make_controller
+from hexjax.experiments.runner import write_json
 from hexjax.sim.config import RolloutConfig
 from hexjax.sim.engines.c_models import _slot_layout, place_boxes
 from hexjax.sim.internals.collide import c_box_contacts
@@ -181,8 +181,7 @@ def main(argv=None):
     print(f"steps whose contacts differ from MuJoCo C's: MJX {totals['mjx']}, hexjax {totals['hexjax']} "
           f"of {steps * o.envs}")
     if o.json:
-        with open(o.json, "w") as f:
-            json.dump(report, f, indent=1)
+        write_json(o.json, report)
         print(f"wrote {o.json}")
 
 
