@@ -14,9 +14,16 @@ BIN := $(VENV)/bin
 $(BIN)/hexjax: pyproject.toml constraints.txt
 	@test -n "$(PY)" || { echo "hexjax needs Python 3.12 (jax 0.11): none found as python3.12, in ~/.pyenv or as python3; run make PY=/path/to/python3.12" >&2; exit 1; }
 	$(BIN)/python -c '$(PY_OK)' 2>/dev/null || { rm -rf $(VENV); $(PY) -m venv $(VENV); }
+	@echo "installing hexjax and what it runs on (jax, mujoco, mujoco-mjx, flax, optax; about a minute) into $(VENV)"
 	$(BIN)/python -m pip install -q --upgrade pip
-	$(BIN)/python -m pip install -q -c constraints.txt -e '.[test]'
+	$(BIN)/python -m pip install -q -c constraints.txt -e .
 	touch $(BIN)/hexjax
+
+# what only the tests need (pytest, scipy, brax, warp-lang: about 400 MB more), installed by `make test` alone
+$(VENV)/.test-extras: $(BIN)/hexjax
+	@echo "installing the test extras (pytest, hypothesis, scipy, brax, warp-lang; a minute or two)"
+	$(BIN)/python -m pip install -q -c constraints.txt -e '.[test]'
+	touch $@
 
 setup: $(BIN)/hexjax
 
@@ -32,17 +39,17 @@ demo: setup
 # processes some tests start) compiled hexjax's sources and rewrote the test modules' asserts afresh, 3.3 s
 # of collection each (10.1 s against 6.8 s)
 PYTEST := PYTHONDONTWRITEBYTECODE= HEXJAX_REQUIRE_WARP=1 $(BIN)/python -m pytest -q -n 2 --durations=15
-test: setup
+test: $(VENV)/.test-extras
 	$(PYTEST) tests
 
 # the same suite in two halves that together run every test once: the four files whose gradient checks
 # hold most of a cold run's compile, and the rest; on the faster 2-core VM (AVX-512) each half alone fits
 # 12 minutes from an empty cache, the whole suite does not (docs/testing.md), so two CI jobs could run one each
 GRAD_TESTS := tests/test_tune.py tests/test_forward_mode.py tests/test_implicit.py tests/test_windows.py
-test-core: setup
+test-core: $(VENV)/.test-extras
 	$(PYTEST) $(addprefix --ignore=,$(GRAD_TESTS)) tests
 
-test-grad: setup
+test-grad: $(VENV)/.test-extras
 	$(PYTEST) $(GRAD_TESTS)
 
 bench: setup

@@ -21,7 +21,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from hexjax.control.registry import make_controller
+from hexjax.control.registry import CONTROLLERS, make_controller
 from hexjax.sim.config import PhysicsConfig, RolloutConfig
 from hexjax.sim.engines import TRACES
 from hexjax.sim.physics import pick
@@ -33,8 +33,8 @@ from hexjax.world.terrain import sample
 
 NEEDS = frozenset({TRACES})  # the video replays the joint traces (the runner picks the engine once)
 
-# the controllers a video can show: those that walk with their default params (hexjax.control.registry)
-RENDERABLE = ("gait", "tactile", "cpg")
+# the controllers a video can show: those that walk from their default params alone (hexjax.control.registry)
+RENDERABLE = tuple(n for n, e in CONTROLLERS.items() if e.walks_alone)
 
 PAD_ON = np.array([1.0, 0.85, 0.1, 1.0])
 

@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
-from hexjax.experiments.tuning import parse_sets
+from hexjax.experiments.commands.tuning import parse_sets
 from hexjax.tune.config import load_tune_config
 from hexjax.tune.objective import Problem, evaluate_held_out
 

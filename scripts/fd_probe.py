@@ -31,7 +31,8 @@ from hexjax.world.presets import get_robot, get_terrain
 
 ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
 ap.add_argument("--robot", default="yu2019", help="robot preset")
-ap.add_argument("--ctrl", default="cpg", choices=["cpg", "cpg-blind", "tactile", "gait"])
+ap.add_argument("--ctrl", default="cpg", choices=["cpg", "cpg-blind", "tactile", "gait"],
+                help="the probe: the CPG (with or without its reflexes), the tactile gait, the open-loop gait")
 ap.add_argument("--iters", type=int, default=0, help="MJX Newton iterations (0: the physics preset's)")
 ap.add_argument("--physics", default="fast", help="physics preset name or .yaml path (an MJX one)")
 ap.add_argument("--cone", default="", choices=["", "pyramidal", "elliptic"], help="override the preset's cone")
@@ -50,27 +51,37 @@ ap.add_argument("--face", type=float, default=0.0, help="put a full-width face a
 ap.add_argument("--faceh", type=float, default=0.06, help="face height, m")
 a = ap.parse_args()
 
-robot = get_robot(a.robot)
-if a.ctrl.startswith("cpg"):
-    ctrl = CPGController(robot, smooth=True, feedback=(a.ctrl == "cpg"))
+
+def _cpg(robot, feedback=True):
+    ctrl = CPGController(robot, smooth=True, feedback=feedback)
     p = ctrl.default_params()
     p = p.replace(temp_force=p.temp_force * a.tforce, temp_phase=p.temp_phase * a.tphase,
                   net=p.net.replace(omega=p.net.omega * a.omega))
     if a.fc:
         p = p.replace(f_contact=p.f_contact.at[:2].set(a.fc))
     space = make_space("cpg", only=a.fields.split(",") if a.fields else None)
-    groups = {n: [n] for n in space.names}
-elif a.ctrl == "tactile":  # the setting of tests/test_tune.py
+    return ctrl, p, space, {n: [n] for n in space.names}
+
+
+def _tactile(robot):  # the setting of tests/test_tune.py
     ctrl, p = tactile_check_setting(robot)
-    space = make_space("tactile")
-    groups = {"gait": ["step_length", "step_height", "swing_time"],
-              "overcoming": ["overcome_length", "overcome_height"], "threshold": ["tactile_threshold"]}
-else:
+    return ctrl, p, make_space("tactile"), {"gait": ["step_length", "step_height", "swing_time"],
+                                            "overcoming": ["overcome_length", "overcome_height"],
+                                            "threshold": ["tactile_threshold"]}
+
+
+def _gait(robot):
     ctrl = GaitController(robot, gait="tripod")
     p = ctrl.default_params().replace(swing_time=jnp.float32(0.2))
     space = ParamSpace.from_dict({"step_length": Bound(0.005, 0.15), "step_height": Bound(0.005, 0.12),
                                   "swing_time": Bound(0.05, 3.0)})
-    groups = {"gait": list(space.names)}
+    return ctrl, p, space, {"gait": list(space.names)}
+
+
+# each --ctrl's probe: (controller, params, the tuned space, the parameter groups a cosine is read for)
+PROBES = {"cpg": _cpg, "cpg-blind": lambda robot: _cpg(robot, feedback=False), "tactile": _tactile, "gait": _gait}
+robot = get_robot(a.robot)
+ctrl, p, space, groups = PROBES[a.ctrl](robot)
 
 u0 = space.init(p)
 spec = get_terrain("flat")

@@ -36,7 +36,7 @@ import time
 import jax
 import numpy as np
 
-from hexjax.experiments.bench_grad import objective_program
+from hexjax.experiments.commands.bench_grad import objective_program
 from hexjax.tune.config import load_tune_config
 from hexjax.tune.objective import Problem
 

@@ -30,7 +30,7 @@ ap.add_argument("--reuse", default="", help="an earlier --json of the same confi
 ap.add_argument("--json", default="")
 a = ap.parse_args()
 
-from hexjax.experiments.tuning import parse_sets  # noqa: E402
+from hexjax.experiments.commands.tuning import parse_sets  # noqa: E402
 from hexjax.tune.config import load_tune_config  # noqa: E402
 
 cfg = load_tune_config(a.config, parse_sets(a.set), merge=True)
@@ -51,7 +51,7 @@ for i, path in enumerate(a.logs):
 import numpy as np  # noqa: E402
 
 from hexjax.sim.engines import GRADIENTS  # noqa: E402
-from hexjax.sim.physics import get_physics, pick  # noqa: E402
+from hexjax.sim.physics import pick  # noqa: E402
 from hexjax.tune.objective import Problem, evaluate_held_out  # noqa: E402
 from hexjax.tune.space import with_values  # noqa: E402
 

@@ -1,4 +1,4 @@
-"""The avoidance planner steering the MJX hexapod (hexjax.control.avoid_gait, hexjax.experiments.zhao2018:
+"""The avoidance planner steering the MJX hexapod (hexjax.control.avoid_gait, hexjax.experiments.papers.zhao2018:
 Zhao 2018 Sect. 3.2 in the loop)."""
 
 import jax
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from hexjax.control.avoid_gait import AvoidGaitController, field_params
-from hexjax.experiments.zhao2018.closed_loop import obstacle_boxes, run_closed_loop, touches
+from hexjax.experiments.papers.zhao2018.closed_loop import obstacle_boxes, run_closed_loop, touches
 from hexjax.plan.fields import Fields, dist_to_polyline, small_fields
 from hexjax.sim.model import Obs
 from hexjax.sim.rollout import rollout

@@ -1,6 +1,7 @@
 """The `hexjax` command: built from the registry, fast to answer, checks before it works, and runs evaluate."""
 
 import json
+import re
 import subprocess
 import sys
 
@@ -131,13 +132,45 @@ def test_cli_reports_bad_input_before_any_work(capsys, tmp_path):
         assert main(argv) == 2 and said in capsys.readouterr().err, argv
     # that check reads two hand lists beside configs/commands/bench.yaml: a flag added to the file and to
     # neither list would be ignored again without a word, so every flag must be in one list or used by both
-    from hexjax.experiments import bench
+    from hexjax.experiments.commands import bench
     both = {"batches", "repeats", "grad", "json"}
     names = {o.name for o in commands()["bench"].options}
     assert not set(bench.FORWARD_ONLY) & set(bench.GRAD_ONLY)
     unsorted = names - set(bench.FORWARD_ONLY) - set(bench.GRAD_ONLY) - both
     assert not unsorted, f"bench.yaml's flags in neither FORWARD_ONLY nor GRAD_ONLY: {sorted(unsorted)}"
     assert set(bench.FORWARD_ONLY) | set(bench.GRAD_ONLY) | both <= names  # and no list names a flag gone
+
+
+def test_the_first_hours_bad_inputs_are_one_line_before_any_work(capsys, tmp_path):
+    """Inputs a new user tried on a fresh clone, each once accepted or answered late: every one is now a
+    one-line error (exit 2) before anything loads or compiles, so no finished run's numbers are lost."""
+    import time
+    folder = tmp_path / "out.json"
+    folder.mkdir()  # a folder where the JSON would go: the job used to run, then lose its numbers
+    (tmp_path / "plot.png").mkdir()
+    (tmp_path / "empty.yaml").write_text("")
+    (tmp_path / "block.yaml").write_text("randomization:\n")
+    (tmp_path / "binary.yaml").write_bytes(bytes(range(128, 256)))
+    cases = ((["evaluate", "--json", str(folder)], f"--json={str(folder)!r}: a folder is there"),
+             (["terrain", "--png", str(tmp_path / "plot.png")], "a folder is there"),
+             (["experiment", "zhao2018", "--json", str(folder)], "a folder is there"),
+             (["tune", "--method", "es", "--equal-wall"], "--equal-wall with --method es"),
+             (["robustness", "--axis", "friction=0.5,1", "--processes", "1", "--process-id", "3"],
+              "--process-id=3: must be in [0, 0]"),
+             (["robustness", "--axis", "friction=0.5,1", "--randomization", str(tmp_path / "empty.yaml")],
+              "an empty randomization"),
+             (["robustness", "--axis", "friction=0.5,1", "--randomization", str(tmp_path / "block.yaml")],
+              "an empty randomization"),
+             (["robustness", "--axis", "friction=0.5,1", "--randomization", str(tmp_path / "binary.yaml")],
+              f"{tmp_path / 'binary.yaml'}: not a text file"),
+             (["evaluate", "--physics", str(tmp_path / "binary.yaml")], f"{tmp_path / 'binary.yaml'}: not a text file"))
+    for argv, said in cases:
+        t0 = time.perf_counter()
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and said in err[0], (argv, err)
+        assert time.perf_counter() - t0 < 10, argv  # nothing walked or compiled first
+    assert not list(folder.iterdir())
 
 
 def test_out_of_memory_is_one_line_naming_the_sizes(capsys, monkeypatch):
@@ -167,9 +200,9 @@ def test_out_of_memory_is_one_line_naming_the_sizes(capsys, monkeypatch):
 def test_the_library_checks_what_the_cli_bounds_check():
     """The registry's bounds only answer sooner: a Python caller of the same functions gets the library's own
     one-line error for the same values."""
-    from hexjax.experiments.evaluate import evaluate
-    from hexjax.experiments.luneckas2020.matrix import run_luneckas2020
-    from hexjax.experiments.luneckas2020.predictor import TrainConfig
+    from hexjax.experiments.commands.evaluate import evaluate
+    from hexjax.experiments.papers.luneckas2020.matrix import run_luneckas2020
+    from hexjax.experiments.papers.luneckas2020.predictor import TrainConfig
     for call, said in ((lambda: evaluate(batch=0), "batch=0"),
                        (lambda: evaluate(distance=float("nan")), "distance=nan"),
                        (lambda: run_luneckas2020(n=0), "n=0"),
@@ -183,7 +216,7 @@ def test_registry_bounds_are_checked_on_load(tmp_path):
     """A bound on a text option, a bound that is not a number, min with above, or a default outside its own
     bounds fails on load, naming the file and the option."""
     from hexjax.experiments.registry import load_entry
-    head = "summary: s\nentry: hexjax.experiments.evaluate\noptions:\n"
+    head = "summary: s\nentry: hexjax.experiments.commands.evaluate\noptions:\n"
     for opt, said in (("  name: {default: a, min: 1}", "need a number option"),
                       ("  n: {default: 2, min: one}", "n.min='one': a bound must be a finite number"),
                       ("  n: {default: 2, min: 1, above: 0}", "give min or above"),
@@ -194,6 +227,14 @@ def test_registry_bounds_are_checked_on_load(tmp_path):
         with pytest.raises(ValueError, match=said) as ex:
             load_entry(f, "commands")
         assert str(f) in str(ex.value)
+    # an entry says who picks its physics (no guessing from its option names), and only where it has the option
+    for text, said in (("  physics: {default: validated, preset: physics}\n", "physics_by='': an entry with a physics"),
+                       ("  n: {default: 2}\n", "physics_by='runner': the entry has no physics option")):
+        f = tmp_path / "bad.yaml"
+        f.write_text(head.replace("options:", "physics_by: runner\noptions:" if "n:" in text else "options:")
+                     + text)
+        with pytest.raises(ValueError, match=re.escape(said)):
+            load_entry(f, "commands")
 
 
 def test_terrain_png_shows_the_obstacles(tmp_path):

@@ -73,7 +73,7 @@ def test_lengths_on_the_command_line_are_in_metres():
 
 
 def test_evaluate_draws_its_picture(tmp_path):
-    from hexjax.experiments.evaluate import plot
+    from hexjax.experiments.commands.evaluate import plot
     cats = {c: dict(abs_dx_cm=v, abs_dy_cm=v / 3, dx_std_cm=v / 2, dy_std_cm=v / 5, fall_pct=f)
             for c, v, f in [("flat", 2, 0), ("high-large", 40, 25)]}
     out = plot({"categories": cats, "config": dict(robot="luneckas2020", gait="tripod", distance_m=1.0, batch=8),
@@ -82,7 +82,7 @@ def test_evaluate_draws_its_picture(tmp_path):
 
 
 def test_the_sweep_says_cores_on_a_cpu():
-    from hexjax.experiments.robustness_view import _devices
+    from hexjax.experiments.commands.robustness_view import _devices
     assert _devices({"devices": 2, "backend": "cpu"}) == "2 CPU cores (one XLA device each)"
     assert _devices({"devices": 1, "backend": "gpu"}) == "1 GPU"
 

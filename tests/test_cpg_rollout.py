@@ -90,7 +90,7 @@ def test_cpg_rollout_rejects_bad_params_before_tracing():
 
 
 def test_experiment_rejects_bad_input():
-    from hexjax.experiments.yu2019 import run_experiment
+    from hexjax.experiments.papers.yu2019.steps import run_experiment
     with pytest.raises(ValueError, match="experiment 'yu2019-stairs' unknown"):
         run_experiment("yu2019-stairs")
     with pytest.raises(ValueError, match="batch=0"):

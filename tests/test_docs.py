@@ -67,3 +67,17 @@ def test_docs_results_holds_exactly_the_files_the_docs_name():
                for m in re.findall(r"\]\((?:docs/)?results/([^)#\s]+)\)", t)
                if not os.path.exists(os.path.join(RESULTS, m))]
     assert not missing, "links to files docs/results does not have: " + "; ".join(missing)
+
+
+def test_the_readme_is_a_front_page():
+    """README.md: its title, then exactly two commands (`make demo`, `make test`) of at most 120 characters each
+    with a comment, at most 90 lines in all, and every doc of docs/ in its list."""
+    text = _read("README.md")
+    lines = text.splitlines()
+    assert lines[0] == "# hexjax" and len(lines) <= 90, len(lines)
+    block = re.search(r"```\n(.*?)```", text, re.S).group(1).splitlines()
+    assert [ln.split()[:2] for ln in block] == [["make", "demo"], ["make", "test"]], block
+    assert all(len(ln) <= 120 and "  # " in ln for ln in block), block
+    docs = sorted(f for f in os.listdir(os.path.join(ROOT, "docs")) if f.endswith(".md"))
+    missing = [d for d in docs if f"`docs/{d}`" not in text]
+    assert not missing, f"docs not in README.md's list: {missing}"

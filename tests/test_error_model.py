@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from hexjax.experiments.luneckas2020 import error_model as em
+from hexjax.experiments.papers.luneckas2020 import error_model as em
 
 
 def test_equations_hand_worked():
@@ -68,7 +68,7 @@ def test_torso_strikes_read_box_tops_under_the_turned_torso():
     (long along y then) still covers the box; a padded (invalid) box never counts."""
     import types
 
-    from hexjax.experiments.luneckas2020.walks import torso_strikes
+    from hexjax.experiments.papers.luneckas2020.walks import torso_strikes
     from hexjax.world.presets import luneckas2020
 
     robot = luneckas2020()
@@ -86,7 +86,7 @@ def test_torso_strikes_read_box_tops_under_the_turned_torso():
 def test_error_causes_add_up_to_the_cells_mean():
     """Five runs of 1 m, one fallen: the upright four split into stuck (0.5 m short), struck (0.1 m) and two clean
     (0.02, 0.04 m); each class's part is its share times its mean, and the parts add to the cell's 16.5 %."""
-    from hexjax.experiments.luneckas2020.matrix import _causes
+    from hexjax.experiments.papers.luneckas2020.matrix import _causes
 
     dx = np.array([0.5, 0.1, 0.02, 0.04, 0.9])
     dy = np.zeros(5)

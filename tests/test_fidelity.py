@@ -9,7 +9,7 @@ import types
 import numpy as np
 import pytest
 
-from hexjax.experiments import fidelity
+from hexjax.experiments.commands import fidelity
 
 
 def _options(**kw):
@@ -21,7 +21,7 @@ def _options(**kw):
 
 def _run_in_own_process(options, preset, path, env):
     """`fidelity.run(options, preset)`'s result, run in a child process with environment `env`."""
-    code = ("import json, sys, types\nfrom hexjax.experiments import fidelity\nfrom hexjax.experiments.runner import "
+    code = ("import json, sys, types\nfrom hexjax.experiments.commands import fidelity\nfrom hexjax.experiments.runner import "
             "write_json\nres = fidelity.run(types.SimpleNamespace(**json.loads(sys.argv[1])), "
             "types.SimpleNamespace(preset=json.loads(sys.argv[2])))\nwrite_json(sys.argv[3], res)\n")
     r = subprocess.run([sys.executable, "-c", code, json.dumps(options), json.dumps(preset), str(path)], env=env,

@@ -18,7 +18,7 @@ from hexjax.control.gait import GaitController
 from hexjax.sim.compiled import Compiled, arrays_digest
 from hexjax.sim.config import PhysicsConfig, RolloutConfig, physics_for
 from hexjax.sim.internals.forward_mode import _contacts, check_model, contact_parts, rows_t_times, rows_times
-from hexjax.sim.internals.implicit import implicit_solve, implicit_solver
+from hexjax.sim.internals.implicit import implicit_solver
 from hexjax.sim.engines import sim_model
 from hexjax.sim.model import mjx
 from hexjax.sim.internals.rules import reversible_solver

@@ -210,7 +210,7 @@ def test_perceived_circles_cover_the_observed_obstacle_area_on_64_fields():
     from 22 cm show only their near faces, so of the whole footprint of every box seen the circles cover less
     (measured 91 %; asserted >= 85 %); the ground is found within 5 mm everywhere."""
     from hexjax.control.avoid_gait import footprint_radius
-    from hexjax.experiments.zhao2018.closed_loop import obstacle_boxes
+    from hexjax.experiments.papers.zhao2018.closed_loop import obstacle_boxes
     from hexjax.plan.fields import small_fields
     rb = luneckas2020()
     n = 64
@@ -272,7 +272,7 @@ def test_perceived_dem_of_a_wave_patch_matches_the_true_dem_where_seen():
     that got returns hold the true column heights (measured: median error 0.6 mm, 90th percentile 3.2 mm) on
     the patch's first quarter."""
     from hexjax.control.perceive_support import PerceivingSupportPlan
-    from hexjax.experiments.chen2019.patch import patch_spec
+    from hexjax.experiments.papers.chen2019.patch import patch_spec
     from hexjax.perceive.grid import dem_grid, to_dem
     from hexjax.world.dem import dem_for, dem_layout
     from hexjax.world.presets import get_robot

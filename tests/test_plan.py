@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from hexjax.plan.avoid import AvoidConfig, capacity_line, clearance, fan, octopus_params, penalty, plan, scores
-from hexjax.experiments.zhao2018.table2 import TABLE2, zhao2018_experiment
+from hexjax.experiments.papers.zhao2018.table2 import TABLE2, zhao2018_experiment
 from hexjax.plan.fields import dist_to_polyline, plan_batch, random_fields
 
 
@@ -149,7 +149,7 @@ def test_iterative_incenter_error_distribution():
     """Chen 2019 Steps 1-5 against the exact centre on 4 x 5000 random convex polygons: never better than
     exact (it is a feasible point), converged on triangles, and within 1e-3 of the exact radius on >= 99 %
     of quadrilaterals to hexagons (the rest stall: its step can only shrink, docs/planning.md)."""
-    from hexjax.experiments.chen2019.incenter import incenter_study
+    from hexjax.experiments.papers.chen2019.incenter import incenter_study
     res = incenter_study(jax.random.PRNGKey(11), 5000)
     for k, d in res["by_sides"].items():
         assert d["iterative_exceeds_exact"] == 0, k

@@ -4,8 +4,8 @@ last-error baseline on held-out sequences, and saves/loads exactly."""
 import numpy as np
 import pytest
 
-from hexjax.experiments.luneckas2020 import dataset as ds
-from hexjax.experiments.luneckas2020 import predictor as pr
+from hexjax.experiments.papers.luneckas2020 import dataset as ds
+from hexjax.experiments.papers.luneckas2020 import predictor as pr
 
 
 def _synthetic(n_seq=96, K=20, seed=0):

@@ -1,4 +1,4 @@
-"""`hexjax bench --profile`'s trace reader (`hexjax.experiments.profile`) on hand-made traces: device kernels
+"""`hexjax bench --profile`'s trace reader (`hexjax.experiments.commands.profile`) on hand-made traces: device kernels
 summed by name, the host's XLA threads read where no device is, and the one-line error where no trace is."""
 
 import gzip
@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from hexjax.experiments.profile import kernel_table
+from hexjax.experiments.commands.profile import kernel_table
 
 
 def _trace(path, events):

@@ -182,7 +182,7 @@ class TestPerturbedWalks:
 
 
 def test_sweep_axes_envelope_and_interval():
-    from hexjax.experiments.robustness import envelope, parse_axis, wilson
+    from hexjax.experiments.commands.robustness import envelope, parse_axis, wilson
     assert parse_axis("friction=0.3:1.0:3") == ("friction", [0.3, 0.65, 1.0])
     assert parse_axis("obstacle_height=0.02,0.05") == ("obstacle_height", [0.02, 0.05])
     assert parse_axis("friction=0.5:0.5:1") == ("friction", [0.5])
@@ -201,7 +201,7 @@ def test_sweep_axes_envelope_and_interval():
     assert e["level"] == 0.65
     assert envelope([0.3], [(10, 50)], "friction")["level"] is None
     # MJX's unconverged solve (the fast preset) gets a note, converged or MuJoCo C does not (docs/physics.md)
-    from hexjax.experiments.robustness import solver_note
+    from hexjax.experiments.commands.robustness import solver_note
     from hexjax.sim.engines import ENGINES
     mjx, warp, c = ENGINES["mjx"], ENGINES["warp"], ENGINES["c"]
     assert "--physics validated" in solver_note("stones", mjx, 2) and "stepping stones" in solver_note("stones", mjx, 2)

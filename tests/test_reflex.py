@@ -112,7 +112,7 @@ def test_a_layer_preset_runs_the_yu2019_experiment_under_the_layer():
     """`hexjax experiment yu2019-step --params <a reflex preset>`: the preset's `net` makes the experiment run the
     CPG under the layer; an untrained layer's preset gives the paper's figures to the last digit (MuJoCo C, a
     short walk of 2 envs a row)."""
-    from hexjax.experiments.yu2019 import run_experiment
+    from hexjax.experiments.papers.yu2019.steps import run_experiment
     from hexjax.tune.driver import _jsonable
     net = make_controller("cpg-reflex", get_robot("yu2019")).init_net()
     preset = _jsonable({"net": net})  # as a params preset's YAML holds it

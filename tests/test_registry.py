@@ -13,8 +13,14 @@ from hexjax.world.presets import get_robot
 def test_each_name_builds_its_controller_with_a_walk_length_rule(name):
     entry = CONTROLLERS[name]
     robot = get_robot(entry.robot)
-    ctrl = make_controller(name, robot, gait="wave")
-    assert ctrl.robot is robot and ctrl.gait == "wave"
+    if entry.gaits:
+        ctrl = make_controller(name, robot, gait="wave")
+        assert ctrl.robot is robot and ctrl.gait == "wave"
+    else:  # it plans its own steps: no gait to give
+        ctrl = make_controller(name, robot)
+        assert ctrl.robot is robot and not hasattr(ctrl, "gait")
+        with pytest.raises(ValueError, match=f"gait='tripod': the {name} controller plans its own steps"):
+            make_controller(name, robot, gait="tripod")
     walk, seconds = ctrl.for_distance(1.0)
     assert type(walk) is type(ctrl) and math.isfinite(seconds) and seconds > 0
     # a longer walk takes longer
@@ -47,18 +53,65 @@ def test_the_walk_length_rules_by_hand():
 
 
 def test_an_unknown_controller_is_refused_naming_the_choices():
-    with pytest.raises(ValueError, match=r"controller='walker': use one of gait, tactile, cpg, avoid, perceive, cpg-reflex, gait-reflex"):
+    with pytest.raises(ValueError, match=r"controller='walker': use one of gait, tactile, cpg, avoid, perceive, "
+                                         r"support, perceive-support, cpg-reflex, gait-reflex"):
         make_controller("walker", get_robot("luneckas2020"))
+
+
+def test_the_registry_gaits_are_the_controllers_own():
+    """The entries list gaits without importing the controllers (configs are checked before JAX loads): they must
+    be the gait tables the controllers check against, and a reflex layer walks its base's."""
+    from hexjax.control.cpg.params import CPG_GAITS
+    from hexjax.control.gait import GAITS
+    own = {"gait": GAITS, "tactile": GAITS, "avoid": GAITS, "perceive": GAITS, "cpg": CPG_GAITS}
+    for name, table in own.items():
+        assert set(CONTROLLERS[name].gaits) == set(table), name
+    for name, e in CONTROLLERS.items():
+        if e.base:
+            assert e.gaits == CONTROLLERS[e.base].gaits, name
+        for g in (set(GAITS) | set(CPG_GAITS)) - set(e.gaits):  # a gait not listed is refused by the controller
+            if e.gaits:
+                with pytest.raises(ValueError, match="gait"):
+                    make_controller(name, get_robot(e.robot), gait=g)
 
 
 def test_the_commands_offer_only_registered_controllers():
     """The command-line choices are written in YAML (parsed before JAX is imported); they must stay a subset
-    of the registry, as must robustness's list."""
-    from hexjax.experiments.robustness import CONTROLLERS as SWEEPABLE
-    for command in ("bench", "render"):
-        choices = read_yaml(resolve("commands", command))["options"]["controller"]["choices"]
-        assert set(choices) <= set(CONTROLLERS), (command, choices)
-    assert set(SWEEPABLE) <= set(CONTROLLERS)
+    of the registry's controllers that can serve them (render: those that walk alone)."""
+    from hexjax.experiments.commands.robustness import SWEEPABLE
+    from hexjax.render import RENDERABLE
+    choices = read_yaml(resolve("commands", "bench"))["options"]["controller"]["choices"]
+    assert set(choices) <= set(CONTROLLERS), choices
+    choices = read_yaml(resolve("commands", "render"))["options"]["controller"]["choices"]
+    assert set(choices) <= set(RENDERABLE), choices
+    assert {"gait", "tactile", "cpg", "avoid"} <= set(SWEEPABLE) <= set(CONTROLLERS)
+    assert not {"perceive", "support"} & set(SWEEPABLE)  # their params come from a sensor or a DEM, not a rule
+
+
+def test_the_cell_rules_by_hand():
+    """The tactile gait's h_k on a cell is its highest obstacle + 2 cm (Luneckas 2020 Eq. 7) where something
+    stands in the way, its own H + 2 cm elsewhere; the avoiding gait's obstacles are the cell's boxes, per env."""
+    import jax
+    import numpy as np
+
+    from hexjax.world.presets import get_terrain
+    from hexjax.world.terrain import sample
+    lun = get_robot("luneckas2020")
+    tactile = make_controller("tactile", lun)
+    rule = CONTROLLERS["tactile"].cell_params
+    boxes = get_terrain("boxes")
+    p, batched = rule(tactile, boxes, None, 0.5)
+    assert not batched and float(p.overcome_height) == pytest.approx(boxes.height_range[1] + 0.02)
+    p, _ = rule(tactile, get_terrain("slope-up"), None, 0.5)
+    assert float(p.overcome_height) == pytest.approx(tactile.max_obstacle_height + 0.02)
+    avoid = make_controller("avoid", lun)
+    terr = sample(boxes, jax.random.PRNGKey(0), 3)
+    p, batched = CONTROLLERS["avoid"].cell_params(avoid, boxes, terr, 0.5)
+    assert batched and np.asarray(p.target).shape == (3, 2) and np.allclose(np.asarray(p.target)[:, 0], 0.5)
+    assert np.asarray(p.valid).any()  # some box stands clear of the start and the target
+    p, _ = CONTROLLERS["avoid"].cell_params(avoid, get_terrain("stairs-up"), sample(get_terrain("stairs-up"),
+                                            jax.random.PRNGKey(0), 3), 0.5)
+    assert not np.asarray(p.valid).any()  # a stair is ground, not an obstacle to walk round
 
 
 def test_every_seed_flag_is_bounded_below_the_keys_that_alias():
@@ -102,3 +155,26 @@ def test_ctrl_c_ends_a_command_at_once_in_one_line(tmp_path):
     assert rc == 130 and took < 2.0, (rc, took)
     assert err[-1] == "hexjax evaluate: interrupted; nothing of this run was kept on disk", err
     assert not any("Traceback" in ln for ln in err)
+
+
+def test_no_code_outside_the_controllers_branches_on_a_controller_name():
+    """What differs between controllers lives in their registry entries: no line of the package (outside
+    hexjax/control/) or of scripts/ compares a string with a registered controller's name."""
+    import os
+    import re
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    names = "|".join(re.escape(n) for n in sorted(CONTROLLERS, key=len, reverse=True))
+    lit = rf"""['"]({names})['"]"""
+    compare = re.compile(rf"""(==|!=|\bin|\bnot in)\s*[(\[{{]?\s*{lit}|{lit}\s*(==|!=|\bin\b|\bnot in\b)""")
+    hits = []
+    for folder in ("hexjax", "scripts"):
+        for dirpath, _, files in os.walk(os.path.join(root, folder)):
+            if os.path.join("hexjax", "control") in dirpath:
+                continue
+            for f in files:
+                if f.endswith(".py"):
+                    path = os.path.join(dirpath, f)
+                    with open(path) as fh:
+                        hits += [f"{os.path.relpath(path, root)}:{i}: {ln.strip()}"
+                                 for i, ln in enumerate(fh, 1) if compare.search(ln)]
+    assert not hits, "\n".join(hits)

@@ -1,5 +1,5 @@
 """Chen 2019 support planning in the loop on the rugged patch (hexjax.control.support_gait,
-hexjax.experiments.chen2019), and the DEM it plans on (hexjax.world.dem)."""
+hexjax.experiments.papers.chen2019), and the DEM it plans on (hexjax.world.dem)."""
 
 import jax
 import jax.numpy as jnp
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from hexjax.control.support_gait import SupportPlanController, rotation
-from hexjax.experiments.chen2019.patch import patch_spec, run_chen2019
+from hexjax.experiments.papers.chen2019.patch import patch_spec, run_chen2019
 from hexjax.plan.support import incenter_exact, overlap_center, side_distances
 from hexjax.sim.model import Obs
 from hexjax.world.dem import DEM, dem_for, dem_lookup

@@ -5,8 +5,8 @@ import types
 
 import numpy as np
 
-from hexjax.experiments.yu2019 import _comparisons, _floor_gap
-from hexjax.experiments.yu2019_network import lock_times
+from hexjax.experiments.papers.yu2019.steps import _comparisons, _floor_gap
+from hexjax.experiments.papers.yu2019.network import lock_times
 from hexjax.world.presets import get_robot
 
 

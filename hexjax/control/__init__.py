@@ -6,4 +6,7 @@ tactile       Luneckas 2020 tactile obstacle overcoming (Eqs. 5-7), hard and smo
 vdp, cpg/     Yu 2019 Van der Pol network (Eqs. 1-5), linear converter, reflexes and event FSM
 avoid_gait    the gait steered by the Zhao 2018 avoidance planner (`hexjax.plan.avoid`)
 support_gait  Chen 2019 whole-body support planning on a known DEM (`hexjax.plan.support`)
+reflex        a learned reflex layer over a paper's controller
+registry      the controllers by name, each entry saying what the commands need of it
+cells         the registry's rules fitting a controller's params to a terrain cell
 """

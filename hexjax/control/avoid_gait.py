@@ -6,7 +6,7 @@ at a cycle boundary, it reads the torso position from the simulator, scores the 
 Zhao Eqs. 1-6 (`hexjax.plan.avoid.scores`, predicting n_T gait cycles ahead) and sets the gait's walking
 direction eps (Luneckas Eq. 2) to the chosen world heading minus the measured yaw. The obstacle circles,
 the target and every planner number are traced params, so `rollout(..., params_batched=True)` walks
-thousands of different fields in one call (`hexjax.experiments.zhao2018`).
+thousands of different fields in one call (`hexjax.experiments.papers.zhao2018`).
 
 Readings and choices (also in docs/planning.md):
   * One planner time-step is one gait cycle; the planner's `step` is the gait's advance per cycle

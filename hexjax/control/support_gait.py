@@ -31,12 +31,13 @@ The commanded world frame is re-anchored at every transition to the measured hor
 (a rigid shift of the torso and every foot target, so the joint commands stay continuous); height, pitch
 and roll stay as commanded, the measured pitch and roll entering through Eq. 3.
 
-`hexjax.experiments.chen2019` walks it and the Luneckas 2020 fixed gait over randomised wave patches.
+`hexjax.experiments.papers.chen2019` walks it and the Luneckas 2020 fixed gait over randomised wave patches.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import jax
 import jax.numpy as jnp
@@ -149,6 +150,13 @@ class SupportPlanController(Controller):
             raise ValueError(f"support.dem.heights shape={h.shape!r}: need a finite grid of at least 3 x 3 cells")
         if not np.all(np.asarray(p.dem.cell) > 0):
             raise ValueError(f"support.dem.cell={np.asarray(p.dem.cell).tolist()!r}: must be > 0")
+
+    def for_distance(self, distance: float, params=None):
+        """The torso advances about one stride a phase (a tripod's swing), so the walk gets that many phases
+        plus two (the first plan and a settling phase); the planner walks on, so no stop is set."""
+        p = self.default_params() if params is None else params
+        stride, phase = float(np.mean(p.stride)), float(np.mean(p.phase_time))
+        return self, (math.ceil(distance / stride) + 2) * phase
 
     def init(self, params: SupportParams, key) -> SupportState:
         del key

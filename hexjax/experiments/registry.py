@@ -14,6 +14,10 @@ A file holds:
              default takes a comma list, each item checked; a false default is a switch)
     preset:  the experiment's fixed numbers (terrains, variants, durations): a copy with other numbers is a
              new experiment, `hexjax experiment path/to/my.yaml`
+    physics_by: where it has a `physics` option, who turns the preset into an engine and settings: `runner` (the
+             runner picks the fastest certified engine on this host, or --engine's, prints it and hands the command
+             the chosen preset) or `command` (the command reads its presets itself: bench times each one it lists,
+             fidelity holds one against another)
 """
 
 from __future__ import annotations
@@ -104,6 +108,7 @@ class Entry:
     preset: Dict[str, Any]
     paper: str = ""
     path: str = ""
+    physics_by: str = ""  # "runner", "command", or "" (no physics option)
 
 
 def _option(source: str, name: str, spec) -> Option:
@@ -147,7 +152,7 @@ def load_entry(path: Path, kind: str) -> Entry:
     """The entry of one registry file; `kind` is 'experiments' or 'commands' (commands carry no paper)."""
     raw = read_yaml(path)
     source = str(path)
-    known = {"summary", "paper", "entry", "options", "preset"}
+    known = {"summary", "paper", "entry", "options", "preset", "physics_by"}
     unknown = set(raw) - known
     if unknown:
         raise ValueError(f"{source}: unknown keys {sorted(unknown)}; known: {sorted(known)}")
@@ -160,8 +165,15 @@ def load_entry(path: Path, kind: str) -> Entry:
     preset = raw.get("preset") or {}
     if not isinstance(opts, dict) or not isinstance(preset, dict):
         raise ValueError(f"{source}: options and preset must be mappings")
+    by = raw.get("physics_by", "")
+    if "physics" in opts and by not in ("runner", "command"):
+        raise ValueError(f"{source}: physics_by={by!r}: an entry with a physics option says who picks its engine: "
+                         "runner or command")
+    if "physics" not in opts and by:
+        raise ValueError(f"{source}: physics_by={by!r}: the entry has no physics option")
     return Entry(name=path.stem, summary=raw["summary"], entry=raw["entry"], paper=str(raw.get("paper", "")),
-                 options=tuple(_option(source, k, v) for k, v in opts.items()), preset=preset, path=source)
+                 options=tuple(_option(source, k, v) for k, v in opts.items()), preset=preset, path=source,
+                 physics_by=by)
 
 
 def experiments() -> Dict[str, Entry]:

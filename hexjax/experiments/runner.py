@@ -53,13 +53,15 @@ def check_folder(flag: str, value, folder: str) -> None:
 
 
 def check_options(entry: Entry, o: types.SimpleNamespace) -> None:
-    """Raise one ValueError line for an output path with the wrong suffix or in a folder that cannot be made
-    or written, or a preset name that does not resolve, before anything runs."""
+    """Raise one ValueError line for an output path with the wrong suffix, naming a folder, or in a folder that
+    cannot be made or written, or a preset name that does not resolve, before anything runs."""
     for opt in entry.options:
         v = getattr(o, opt.name)
         if opt.output and v:
             if not str(v).lower().endswith(opt.output):
                 raise ValueError(f"{opt.flag}={v!r}: the file must end in {' or '.join(opt.output)}")
+            if os.path.isdir(v):
+                raise ValueError(f"{opt.flag}={v!r}: a folder is there; give a file path")
             check_folder(opt.flag, v, os.path.dirname(os.path.abspath(v)))
         if opt.preset and v:
             for name in (v if isinstance(v, list) else [v]):
@@ -156,24 +158,23 @@ def run(entry: Entry, o: types.SimpleNamespace) -> Dict[str, Any]:
     result and prints what was written."""
     check_options(entry, o)
     check_batch_memory(o)  # the generous estimate, before JAX loads; the chosen engine's figure below
-    names = {opt.name for opt in entry.options}
     mod = importlib.import_module(entry.entry)
     physics = None
-    if "physics" in names and "against" not in names:  # `hexjax fidelity` names its two presets itself
-        from hexjax.sim.physics import get_physics, pick, timed_settings
-        if isinstance(o.physics, list):  # `hexjax bench` times each preset on each engine it lists
-            for p in [get_physics(n) for n in o.physics]:  # a bad file or value: one line, before anything runs
-                for e in o.engine or [None]:
-                    print(timed_settings(p, e).header(), flush=True)
-        else:
-            # the physics is chosen here, once: the fastest engine certified for the preset on this host that can
-            # do what the command needs (`NEEDS`), or the one --engine names; the command runs it as given
-            if hasattr(mod, "prepare"):  # checks that need no JAX and settings made before it loads
-                mod.prepare(o)
-            physics = pick(o.physics, getattr(o, "engine", "") or None, needs=getattr(mod, "NEEDS", frozenset()))
-            check_batch_memory(o, physics.engine)
-            print(physics.header(), flush=True)
-            o = types.SimpleNamespace(**{**vars(o), "physics": physics})
+    if entry.physics_by == "command" and isinstance(o.physics, list):  # bench times each preset on each engine
+        from hexjax.sim.physics import get_physics, timed_settings
+        for p in [get_physics(n) for n in o.physics]:  # a bad file or value: one line, before anything runs
+            for e in o.engine or [None]:
+                print(timed_settings(p, e).header(), flush=True)
+    if entry.physics_by == "runner":
+        from hexjax.sim.physics import pick
+        # the physics is chosen here, once: the fastest engine certified for the preset on this host that can
+        # do what the command needs (`NEEDS`), or the one --engine names; the command runs it as given
+        if hasattr(mod, "prepare"):  # checks that need no JAX and settings made before it loads
+            mod.prepare(o)
+        physics = pick(o.physics, getattr(o, "engine", "") or None, needs=getattr(mod, "NEEDS", frozenset()))
+        check_batch_memory(o, physics.engine)
+        print(physics.header(), flush=True)
+        o = types.SimpleNamespace(**{**vars(o), "physics": physics})
     res = mod.run(o, entry)
     if physics is not None and isinstance(res, dict):  # every result names the physics it ran
         res.setdefault("physics", physics.record())

@@ -53,6 +53,95 @@ def option_xml(physics: PhysicsConfig, gravity=None) -> str:
             f'cone="{physics.cone}" integrator="{integ}"{g}><flag eulerdamp="disable"/></option>')
 
 
+def _legs(spec: RobotSpec, bits) -> list:
+    """Each leg's bodies: coxa, femur and tibia capsules, the tibia's pad and foot, the foot's site."""
+    leg_mass = spec.total_mass * spec.leg_mass_fraction / N_LEGS
+    hips, yaws, fsign = hip_positions(spec), mount_yaws(spec), forward_sign()
+    lc, lf, lt = spec.coxa_length, spec.femur_length, spec.tibia_length
+    legs = []
+    for i, name in enumerate(LEG_NAMES):
+        p0, p1 = spec.pad_span
+        pad_y = fsign[i] * spec.pad_offset
+        legs.append(f"""
+      <body name="{name}_coxa" pos="{_f(*hips[i])}" euler="0 0 {yaws[i]:.6g}">
+        <joint name="{name}_coxa" axis="0 0 1" range="{_f(*spec.coxa_range)}"/>
+        <geom name="{name}_coxa" type="capsule" fromto="0 0 0 {lc:.6g} 0 0" size="0.01" mass="{0.25 * leg_mass:.6g}"/>
+        <body name="{name}_femur" pos="{lc:.6g} 0 0">
+          <joint name="{name}_femur" axis="0 -1 0" range="{_f(*spec.femur_range)}"/>
+          <geom name="{name}_femur" type="capsule" fromto="0 0 0 {lf:.6g} 0 0" size="0.009" mass="{0.35 * leg_mass:.6g}"/>
+          <body name="{name}_tibia" pos="{lf:.6g} 0 0">
+            <joint name="{name}_tibia" axis="0 -1 0" range="{_f(*spec.tibia_range)}"/>
+            <geom name="{name}_tibia" type="capsule" fromto="0 0 0 {lt - spec.foot_radius:.6g} 0 0" size="0.007" mass="{0.3 * leg_mass:.6g}"/>
+            <geom name="{name}_pad" type="capsule" fromto="{p0 * lt:.6g} {pad_y:.6g} 0 {p1 * lt:.6g} {pad_y:.6g} 0" size="{spec.pad_radius:.6g}" mass="{0.02 * leg_mass:.6g}" rgba="0.9 0.3 0.2 1"{bits(2)}/>
+            <geom name="{name}_foot" type="sphere" pos="{lt:.6g} 0 0" size="{spec.foot_radius:.6g}" mass="{0.08 * leg_mass:.6g}" rgba="0.2 0.2 0.2 1"{bits(1)}/>
+            <site name="{name}_foot" pos="{lt:.6g} 0 0" size="0.005"/>
+          </body>
+        </body>
+      </body>""")
+    return legs
+
+
+def _slots(physics: PhysicsConfig, terrain_boxes: int) -> list:
+    """The terrain's box geoms: per-leg and torso slots, or the world body's grid of `terrain_boxes`."""
+    slots = []
+    for i, name in enumerate(LEG_NAMES):
+        for k in range(physics.slots_per_leg):
+            slots.append(f'<geom name="slot_{name}_{k}" type="box" size="0.01 0.01 0.01" pos="0 0 {PARKED_Z}" rgba="0.6 0.5 0.3 1"/>')
+    for k in range(physics.torso_slots):
+        slots.append(f'<geom name="slot_torso_{k}" type="box" size="0.01 0.01 0.01" pos="0 0 {PARKED_Z}" rgba="0.6 0.5 0.3 1"/>')
+    k = math.ceil(math.sqrt(terrain_boxes))
+    for j in range(terrain_boxes):
+        # world-body geoms: no body of their own, so neither the broadphase's sweep nor the kinematics of bodies
+        # sees them; the world body's tree (built here from this grid) prunes them
+        slots.append(f'<geom name="terrain_{j}" type="box" size="0.01 0.01 0.01" pos="{j // k} {j % k} {PARKED_Z}" '
+                     f'conaffinity="3" rgba="0.6 0.5 0.3 1"/>')
+    return slots
+
+
+def _sensors() -> list:
+    """Contact, actuator-force and foot-position sensors (`sensor_layout`), for engines other than MJX's JAX one."""
+    sensors = []
+    for name in LEG_NAMES:
+        # geom2=g with reduce=netforce: the net force on g from everything it touches, world frame
+        sensors.append(f'<contact name="{name}_foot_net" geom2="{name}_foot" data="force" reduce="netforce" num="1"/>')
+        sensors.append(f'<contact name="{name}_foot_each" geom1="{name}_foot" data="force" reduce="maxforce" '
+                       f'num="{SENSOR_MATCHES}"/>')
+        sensors.append(f'<contact name="{name}_pad_each" geom1="{name}_pad" data="force" reduce="maxforce" '
+                       f'num="{SENSOR_MATCHES}"/>')
+    for name in LEG_NAMES:
+        for j in ("coxa", "femur", "tibia"):
+            sensors.append(f'<actuatorfrc name="{name}_{j}_force" actuator="{name}_{j}"/>')
+    for name in LEG_NAMES:
+        sensors.append(f'<framepos name="{name}_foot_pos" objtype="site" objname="{name}_foot"/>')
+    return sensors
+
+
+def _pairs(physics: PhysicsConfig) -> list:
+    """The explicit contact pairs: ground with feet and torso, each slot with its leg's foot and pad or the torso."""
+    pairs = []
+    for name in LEG_NAMES:
+        pairs.append(f'<pair geom1="ground" geom2="{name}_foot"/>')
+    pairs.append('<pair geom1="ground" geom2="torso"/>')
+    for name in LEG_NAMES:
+        for k in range(physics.slots_per_leg):
+            pairs.append(f'<pair geom1="slot_{name}_{k}" geom2="{name}_foot"/>')
+            pairs.append(f'<pair geom1="slot_{name}_{k}" geom2="{name}_pad"/>')
+    for k in range(physics.torso_slots):
+        pairs.append(f'<pair geom1="slot_torso_{k}" geom2="torso"/>')
+    return pairs
+
+
+def _actuators(spec: RobotSpec) -> list:
+    """A position servo per joint with the robot's gains and torque limit."""
+    actuators = []
+    for name in LEG_NAMES:
+        for j in ("coxa", "femur", "tibia"):
+            actuators.append(
+                f'<position name="{name}_{j}" joint="{name}_{j}" kp="{spec.kp:.6g}" kv="{spec.kv:.6g}" '
+                f'forcerange="{-spec.max_torque:.6g} {spec.max_torque:.6g}"/>')
+    return actuators
+
+
 def build_mjcf(spec: RobotSpec, physics: PhysicsConfig, *, contact_sensors: bool = False,
                terrain_boxes: int = 0) -> str:
     """MJCF text of the robot on a ground plane with `physics.slots_per_leg` slots per leg.
@@ -77,76 +166,14 @@ def build_mjcf(spec: RobotSpec, physics: PhysicsConfig, *, contact_sensors: bool
     leg_mass = spec.total_mass * spec.leg_mass_fraction / N_LEGS
     torso_mass = spec.total_mass - N_LEGS * leg_mass
     q0 = neutral_joint_angles(spec)
-    hips, yaws, fsign = hip_positions(spec), mount_yaws(spec), forward_sign()
-    lc, lf, lt = spec.coxa_length, spec.femur_length, spec.tibia_length
     z0 = spec.hip_height + 0.003
 
-    legs = []
-    for i, name in enumerate(LEG_NAMES):
-        p0, p1 = spec.pad_span
-        pad_y = fsign[i] * spec.pad_offset
-        legs.append(f"""
-      <body name="{name}_coxa" pos="{_f(*hips[i])}" euler="0 0 {yaws[i]:.6g}">
-        <joint name="{name}_coxa" axis="0 0 1" range="{_f(*spec.coxa_range)}"/>
-        <geom name="{name}_coxa" type="capsule" fromto="0 0 0 {lc:.6g} 0 0" size="0.01" mass="{0.25 * leg_mass:.6g}"/>
-        <body name="{name}_femur" pos="{lc:.6g} 0 0">
-          <joint name="{name}_femur" axis="0 -1 0" range="{_f(*spec.femur_range)}"/>
-          <geom name="{name}_femur" type="capsule" fromto="0 0 0 {lf:.6g} 0 0" size="0.009" mass="{0.35 * leg_mass:.6g}"/>
-          <body name="{name}_tibia" pos="{lf:.6g} 0 0">
-            <joint name="{name}_tibia" axis="0 -1 0" range="{_f(*spec.tibia_range)}"/>
-            <geom name="{name}_tibia" type="capsule" fromto="0 0 0 {lt - spec.foot_radius:.6g} 0 0" size="0.007" mass="{0.3 * leg_mass:.6g}"/>
-            <geom name="{name}_pad" type="capsule" fromto="{p0 * lt:.6g} {pad_y:.6g} 0 {p1 * lt:.6g} {pad_y:.6g} 0" size="{spec.pad_radius:.6g}" mass="{0.02 * leg_mass:.6g}" rgba="0.9 0.3 0.2 1"{bits(2)}/>
-            <geom name="{name}_foot" type="sphere" pos="{lt:.6g} 0 0" size="{spec.foot_radius:.6g}" mass="{0.08 * leg_mass:.6g}" rgba="0.2 0.2 0.2 1"{bits(1)}/>
-            <site name="{name}_foot" pos="{lt:.6g} 0 0" size="0.005"/>
-          </body>
-        </body>
-      </body>""")
+    legs = _legs(spec, bits)
 
-    slots = []
-    for i, name in enumerate(LEG_NAMES):
-        for k in range(physics.slots_per_leg):
-            slots.append(f'<geom name="slot_{name}_{k}" type="box" size="0.01 0.01 0.01" pos="0 0 {PARKED_Z}" rgba="0.6 0.5 0.3 1"/>')
-    for k in range(physics.torso_slots):
-        slots.append(f'<geom name="slot_torso_{k}" type="box" size="0.01 0.01 0.01" pos="0 0 {PARKED_Z}" rgba="0.6 0.5 0.3 1"/>')
-    k = math.ceil(math.sqrt(terrain_boxes))
-    for j in range(terrain_boxes):
-        # world-body geoms: no body of their own, so neither the broadphase's sweep nor the kinematics of bodies
-        # sees them; the world body's tree (built here from this grid) prunes them
-        slots.append(f'<geom name="terrain_{j}" type="box" size="0.01 0.01 0.01" pos="{j // k} {j % k} {PARKED_Z}" '
-                     f'conaffinity="3" rgba="0.6 0.5 0.3 1"/>')
-
-    sensors = []
-    if contact_sensors:
-        for name in LEG_NAMES:
-            # geom2=g with reduce=netforce: the net force on g from everything it touches, world frame
-            sensors.append(f'<contact name="{name}_foot_net" geom2="{name}_foot" data="force" reduce="netforce" num="1"/>')
-            sensors.append(f'<contact name="{name}_foot_each" geom1="{name}_foot" data="force" reduce="maxforce" '
-                           f'num="{SENSOR_MATCHES}"/>')
-            sensors.append(f'<contact name="{name}_pad_each" geom1="{name}_pad" data="force" reduce="maxforce" '
-                           f'num="{SENSOR_MATCHES}"/>')
-        for name in LEG_NAMES:
-            for j in ("coxa", "femur", "tibia"):
-                sensors.append(f'<actuatorfrc name="{name}_{j}_force" actuator="{name}_{j}"/>')
-        for name in LEG_NAMES:
-            sensors.append(f'<framepos name="{name}_foot_pos" objtype="site" objname="{name}_foot"/>')
-
-    pairs = []
-    for name in LEG_NAMES:
-        pairs.append(f'<pair geom1="ground" geom2="{name}_foot"/>')
-    pairs.append('<pair geom1="ground" geom2="torso"/>')
-    for name in LEG_NAMES:
-        for k in range(physics.slots_per_leg):
-            pairs.append(f'<pair geom1="slot_{name}_{k}" geom2="{name}_foot"/>')
-            pairs.append(f'<pair geom1="slot_{name}_{k}" geom2="{name}_pad"/>')
-    for k in range(physics.torso_slots):
-        pairs.append(f'<pair geom1="slot_torso_{k}" geom2="torso"/>')
-
-    actuators = []
-    for name in LEG_NAMES:
-        for j in ("coxa", "femur", "tibia"):
-            actuators.append(
-                f'<position name="{name}_{j}" joint="{name}_{j}" kp="{spec.kp:.6g}" kv="{spec.kv:.6g}" '
-                f'forcerange="{-spec.max_torque:.6g} {spec.max_torque:.6g}"/>')
+    slots = _slots(physics, terrain_boxes)
+    sensors = _sensors() if contact_sensors else []
+    pairs = _pairs(physics)
+    actuators = _actuators(spec)
 
     qpos0 = _f(0, 0, z0, 1, 0, 0, 0, *q0.reshape(-1))
     body = "\n".join(legs)

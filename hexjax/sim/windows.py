@@ -89,6 +89,71 @@ def _assemble(like, state, fixed, derived):
     return jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(like), leaves)
 
 
+def _make_backward_window(step, settle_action, kept_solutions, w: int, t_all: int):
+    """backward_window(params, terrain, m, like, kept_w, derived0, k_sense, ct_end, k): window k's sum over its steps
+    of their params' cotangent, from the cotangent `ct_end` at the window's end, by reverse mode through each step
+    from its kept input state."""
+
+    def backward_window(params, terrain, m, like, kept_w, derived0, k_sense, ct_end, k):
+        """Sum over the window's steps of their params' cotangent, from `ct_end` at the window's end."""
+        p_fl, p_rebuild = _floats(params)
+
+        def rev(carry, j):
+            ct, gsum = carry
+            i = k * w + j
+            state, fixed, cs, acc, solved = jax.tree_util.tree_map(lambda a: a[j], kept_w)
+            x_fl, x_rebuild = _floats((state, cs, acc))
+
+            def f(pf, xf):
+                p = p_rebuild(pf)
+                st, c, a = x_rebuild(xf)
+                d = _assemble(like, st, fixed, derived0)
+                with kept_solutions(solved):
+                    (nd, nc, na), _ = step((d, c, a), i, p, terrain, m, settle_action(p), None, k_sense)
+                return _floats((_data_parts(nd)[0], nc, na))[0]
+
+            _, vjp = jax.vjp(f, p_fl, x_fl)
+            gp, gx = vjp(ct)
+            valid = i < t_all  # the last window's padding passes the cotangent on untouched
+            gx = [jnp.where(valid, a, b) for a, b in zip(gx, ct)]
+            gsum = [s + jnp.where(valid, g, 0.0) for s, g in zip(gsum, gp)]
+            return (gx, gsum), None
+
+        (_, gsum), _ = jax.lax.scan(rev, (ct_end, [jnp.zeros_like(x) for x in p_fl]), jnp.arange(w)[::-1])
+        return gsum
+
+    return backward_window
+
+
+def _end_cotangents(ct_fin, acc_kept, acc_f, k_win: int, w: int, t_all: int):
+    """Each window's end cotangent (B, K, ...) as float leaves, from the loss's cotangent `ct_fin` of the final
+    (state, controller state, accumulators): the state's at the last window only; the accumulators' at every
+    window, a running extreme's only where the window's end already holds the final value."""
+    acc_ends = jax.tree_util.tree_map(lambda a, af: jnp.concatenate([a[:, w::w], af[:, None]], axis=1), acc_kept,
+                                      acc_f)
+    last = (jnp.arange(k_win) == k_win - 1)
+
+    def at_end(ct, name=None, ends=None, final=None):
+        ct = jnp.broadcast_to(ct[:, None], (ct.shape[0], k_win) + ct.shape[1:])
+        if name in _EXTREMES:
+            return jnp.where(ends == final[:, None], ct, 0.0)
+        return ct
+
+    def at_last(c):
+        return jnp.where(last.reshape((1, -1) + (1,) * (c.ndim - 1)), at_end(c), 0.0) if _is_float(c) else c
+
+    ct_state = jax.tree_util.tree_map(at_last, ct_fin[:2])  # Data's state leaves and the controller's
+    ct_acc = {n: (at_end(c, n, acc_ends[n], acc_f[n]) if _is_float(c) else c) for n, c in ct_fin[2].items()}
+    return _floats((*ct_state, ct_acc))[0]
+
+
+def _windows(a, k_win: int, w: int, t_all: int):
+    """A kept input (B, T, ...) as (B, K, W, ...): the last window padded with copies of the last step."""
+    pad = k_win * w - t_all
+    a = jnp.concatenate([a, jnp.repeat(a[:, -1:], pad, axis=1)], axis=1) if pad else a
+    return a.reshape((a.shape[0], k_win, w) + a.shape[2:])
+
+
 def windowed_value_and_grad(robot, controller, duration: float, loss, *, physics: PhysicsConfig = PhysicsConfig(),
                             sensors: SensorConfig = SensorConfig(), config: RolloutConfig = RolloutConfig(),
                             params_batched: bool = False, max_parallel: int = MAX_PARALLEL,
@@ -133,33 +198,7 @@ def windowed_value_and_grad(robot, controller, duration: float, loss, *, physics
         final, kept = jax.lax.scan(body, carry0, jnp.arange(t_all))
         return final, kept, _data_parts(carry0[0])[2], k_sense
 
-    def backward_window(params, terrain, m, like, kept_w, derived0, k_sense, ct_end, k):
-        """Sum over the window's steps of their params' cotangent, from `ct_end` at the window's end."""
-        p_fl, p_rebuild = _floats(params)
-
-        def rev(carry, j):
-            ct, gsum = carry
-            i = k * w + j
-            state, fixed, cs, acc, solved = jax.tree_util.tree_map(lambda a: a[j], kept_w)
-            x_fl, x_rebuild = _floats((state, cs, acc))
-
-            def f(pf, xf):
-                p = p_rebuild(pf)
-                st, c, a = x_rebuild(xf)
-                d = _assemble(like, st, fixed, derived0)
-                with kept_solutions(solved):
-                    (nd, nc, na), _ = step((d, c, a), i, p, terrain, m, settle_action(p), None, k_sense)
-                return _floats((_data_parts(nd)[0], nc, na))[0]
-
-            _, vjp = jax.vjp(f, p_fl, x_fl)
-            gp, gx = vjp(ct)
-            valid = i < t_all  # the last window's padding passes the cotangent on untouched
-            gx = [jnp.where(valid, a, b) for a, b in zip(gx, ct)]
-            gsum = [s + jnp.where(valid, g, 0.0) for s, g in zip(gsum, gp)]
-            return (gx, gsum), None
-
-        (_, gsum), _ = jax.lax.scan(rev, (ct_end, [jnp.zeros_like(x) for x in p_fl]), jnp.arange(w)[::-1])
-        return gsum
+    backward_window = _make_backward_window(step, settle_action, kept_solutions, w, t_all)
 
     def f(m, params, terrain, keys):
         with solver_context(config, physics):
@@ -182,32 +221,8 @@ def windowed_value_and_grad(robot, controller, duration: float, loss, *, physics
             _, vjp, (summary, j) = jax.vjp(total, fin_fl, has_aux=True)
             ct_fin = fin_rebuild(vjp(jnp.ones(()))[0])
 
-            # each window's end: the state's cotangent at the last window only; the accumulators' at every window,
-            # a running extreme's only where the window's end already holds the final value
-            pad = k_win * w - t_all
-            acc_ends = jax.tree_util.tree_map(
-                lambda a, af: jnp.concatenate([a[:, w::w], af[:, None]], axis=1), kept[3], acc_f)
-            last = (jnp.arange(k_win) == k_win - 1)
-
-            def at_end(ct, name=None, ends=None, final=None):
-                ct = jnp.broadcast_to(ct[:, None], (ct.shape[0], k_win) + ct.shape[1:])
-                if name in _EXTREMES:
-                    return jnp.where(ends == final[:, None], ct, 0.0)
-                return ct
-
-            def at_last(c):
-                return jnp.where(last.reshape((1, -1) + (1,) * (c.ndim - 1)), at_end(c), 0.0) if _is_float(c) else c
-
-            ct_state = jax.tree_util.tree_map(at_last, ct_fin[:2])  # Data's state leaves and the controller's
-            ct_acc = {n: (at_end(c, n, acc_ends[n], acc_f[n]) if _is_float(c) else c) for n, c in ct_fin[2].items()}
-            ct_end = _floats((*ct_state, ct_acc))[0]
-
-            # the kept inputs as (B, K, W, ...): the last window padded with copies of the last step
-            def windows(a):
-                a = jnp.concatenate([a, jnp.repeat(a[:, -1:], pad, axis=1)], axis=1) if pad else a
-                return a.reshape((a.shape[0], k_win, w) + a.shape[2:])
-
-            kept_w = jax.tree_util.tree_map(windows, kept)
+            ct_end = _end_cotangents(ct_fin, kept[3], acc_f, k_win, w, t_all)
+            kept_w = jax.tree_util.tree_map(lambda a: _windows(a, k_win, w, t_all), kept)
             # windows in turns of at most max_parallel / B: equal turns, the last padded with windows past the end
             # (every step of theirs is padding), so that one traced backward serves every turn
             turns = math.ceil(k_win * int(terrain.box_pos.shape[0]) / max_parallel)

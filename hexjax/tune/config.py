@@ -107,6 +107,37 @@ class TuneConfig:
         return (self.terrain,) if isinstance(self.terrain, str) else tuple(self.terrain)
 
     def validate(self) -> None:
+        """Every key checked, one concern after another; each error is one line naming `tune.<key>` and its value."""
+        self._check_data()
+        self._check_physics()
+        self._check_estimator()
+        self._check_es()
+        self._check_optimizer()
+        self._check_objective()
+        self.space()  # unknown controller, unknown parameter, min > max
+        for name in self.terrains:  # a wrong override (checked like the preset file's own keys)
+            try:
+                self.terrain_spec(name)
+            except ValueError as err:
+                raise ValueError(f"tune.terrain_overrides: {err}") from None
+
+    def _positive(self, *fields: str, optional: Tuple[str, ...] = ()) -> None:
+        """Each of `fields` a finite number > 0 (those in `optional` may be None)."""
+        for f in fields:
+            v = getattr(self, f)
+            if f in optional and v is None:
+                continue
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise ValueError(f"tune.{f}={v!r}: must be a finite number > 0")
+
+    def _whole(self, *fields: str, least: int = 1) -> None:
+        for f in fields:
+            v = getattr(self, f)
+            if not (isinstance(v, int) and not isinstance(v, bool) and v >= least):
+                raise ValueError(f"tune.{f}={v!r}: must be an integer >= {least}")
+
+    def _check_data(self) -> None:
+        """The walks: controller and gait, terrains, batches, steps, the start, distance and horizon."""
         t = self.terrain
         if not (isinstance(t, str) or (isinstance(t, (list, tuple)) and t and all(isinstance(x, str) for x in t))):
             raise ValueError(f"tune.terrain={t!r}: must be a terrain preset name or a non-empty list of them")
@@ -128,34 +159,19 @@ class TuneConfig:
                 load_values(self.start)
             except ValueError as err:
                 raise ValueError(f"tune.start={self.start!r}: {err}") from None
-        if self.es_strategy not in ES_STRATEGIES:
-            raise ValueError(f"tune.es_strategy={self.es_strategy!r}: use one of {ES_STRATEGIES}")
-        if self.es_objective not in ("smooth", "hard"):
-            raise ValueError(f"tune.es_objective={self.es_objective!r}: use 'smooth' or 'hard'")
-        if self.es_rollouts not in ("training", "certified"):
-            raise ValueError(f"tune.es_rollouts={self.es_rollouts!r}: use 'training' or 'certified'")
-        if self.es_rollouts == "certified" and self.es_objective != "hard":
-            raise ValueError("tune.es_rollouts='certified' runs the evaluated (hard) rollout: set es_objective: hard")
-        if self.gates not in GATES:
-            raise ValueError(f"tune.gates={self.gates!r}: use one of {GATES}")
-        if self.estimator not in ESTIMATORS:
-            raise ValueError(f"tune.estimator={self.estimator!r}: use one of {ESTIMATORS}")
-        if not (isinstance(self.zo_pairs, int) and not isinstance(self.zo_pairs, bool) and self.zo_pairs >= 1):
-            raise ValueError(f"tune.zo_pairs={self.zo_pairs!r}: must be an integer >= 1")
-        from hexjax.control.registry import paper_controller
-        kind = paper_controller(self.controller)
-        if kind == "cpg" and self.gait not in ("tripod", "tetrapod", "wave"):
-            raise ValueError(f"tune.gait={self.gait!r}: the cpg controller walks 'tripod', 'tetrapod' or 'wave'")
-        if kind == "tactile" and self.gait not in ("tripod", "wave"):
-            raise ValueError(f"tune.gait={self.gait!r}: the tactile gait walks 'tripod' or 'wave'")
-        if not (isinstance(self.validation_batch, int) and self.validation_batch >= 0):
-            raise ValueError(f"tune.validation_batch={self.validation_batch!r}: must be an integer >= 0")
-        for f in ("train_batch", "held_out_batch", "steps", "eval_every", "es_population"):
-            v = getattr(self, f)
-            if not (isinstance(v, int) and not isinstance(v, bool) and v >= 1):
-                raise ValueError(f"tune.{f}={v!r}: must be an integer >= 1")
-        if self.es_population < 2:
-            raise ValueError(f"tune.es_population={self.es_population!r}: must be >= 2")
+        from hexjax.control.registry import CONTROLLERS
+        gaits = CONTROLLERS[self.controller].gaits if self.controller in CONTROLLERS else None  # else: space()
+        if gaits is not None and self.gait not in gaits:
+            raise ValueError(f"tune.gait={self.gait!r}: the {self.controller} controller walks "
+                             + " or ".join(map(repr, gaits)))
+        self._whole("validation_batch", least=0)
+        self._whole("train_batch", "held_out_batch", "steps", "eval_every")
+        self._positive("distance", "horizon")
+        if not (0 <= self.max_obstacle_height <= 0.2):
+            raise ValueError(f"tune.max_obstacle_height={self.max_obstacle_height!r}: must be in [0, 0.2] m")
+
+    def _check_physics(self) -> None:
+        """The training and the evaluation physics, and how the gradient goes through the solve."""
         it = self.solver_iterations
         if it is not None and not (isinstance(it, int) and not isinstance(it, bool) and 1 <= it <= 32):
             raise ValueError(f"tune.solver_iterations={it!r}: must be None or an integer in [1, 32]")
@@ -175,6 +191,14 @@ class TuneConfig:
             raise ValueError(f"tune.solver_grad={self.solver_grad!r}: use one of {GRAD_SOLVERS}")
         if not isinstance(self.unroll_substeps, bool):
             raise ValueError(f"tune.unroll_substeps={self.unroll_substeps!r}: must be true or false")
+
+    def _check_estimator(self) -> None:
+        """The gradient estimator: gates, windows, the bound, the backward pass, the hybrid's pairs."""
+        if self.gates not in GATES:
+            raise ValueError(f"tune.gates={self.gates!r}: use one of {GATES}")
+        if self.estimator not in ESTIMATORS:
+            raise ValueError(f"tune.estimator={self.estimator!r}: use one of {ESTIMATORS}")
+        self._whole("zo_pairs")
         if self.backward not in BACKWARDS:
             raise ValueError(f"tune.backward={self.backward!r}: use one of {BACKWARDS}")
         if self.backward != "sequential" and self.estimator != "first_order":
@@ -186,14 +210,23 @@ class TuneConfig:
         if self.backward == "forward" and self.grad_clip is not None:
             raise ValueError(f"tune.backward='forward' with tune.grad_clip={self.grad_clip!r}: the bound acts on "
                              "reverse mode's cotangents and has no forward-mode counterpart; set grad_clip: null")
-        for f in ("distance", "horizon", "window", "grad_clip", "temperature", "es_sigma", "zo_sigma", "zo_prior"):
-            v = getattr(self, f)
-            if f in ("temperature", "grad_clip") and v is None:
-                continue
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                raise ValueError(f"tune.{f}={v!r}: must be a finite number > 0")
-        if not (0 <= self.max_obstacle_height <= 0.2):
-            raise ValueError(f"tune.max_obstacle_height={self.max_obstacle_height!r}: must be in [0, 0.2] m")
+        self._positive("window", "grad_clip", "temperature", "zo_sigma", "zo_prior",
+                       optional=("grad_clip", "temperature"))
+
+    def _check_es(self) -> None:
+        """The evolution strategy: which one, where its rollouts run, its population and step size."""
+        if self.es_strategy not in ES_STRATEGIES:
+            raise ValueError(f"tune.es_strategy={self.es_strategy!r}: use one of {ES_STRATEGIES}")
+        if self.es_objective not in ("smooth", "hard"):
+            raise ValueError(f"tune.es_objective={self.es_objective!r}: use 'smooth' or 'hard'")
+        if self.es_rollouts not in ("training", "certified"):
+            raise ValueError(f"tune.es_rollouts={self.es_rollouts!r}: use 'training' or 'certified'")
+        if self.es_rollouts == "certified" and self.es_objective != "hard":
+            raise ValueError("tune.es_rollouts='certified' runs the evaluated (hard) rollout: set es_objective: hard")
+        self._whole("es_population", least=2)
+        self._positive("es_sigma")
+
+    def _check_optimizer(self) -> None:
         opt = dict(self.optimizer)
         unknown = set(opt) - {"name", "learning_rate", "clip_norm", "decay_to", "average"}
         if unknown:
@@ -212,6 +245,8 @@ class TuneConfig:
         clip = opt.get("clip_norm")
         if clip is not None and not (isinstance(clip, (int, float)) and math.isfinite(clip) and clip > 0):
             raise ValueError(f"tune.optimizer.clip_norm={clip!r}: must be None or a finite number > 0")
+
+    def _check_objective(self) -> None:
         for k, w in self.objective.items():
             if k not in OBJECTIVE_TERMS:
                 raise ValueError(f"tune.objective.{k}: unknown term; use {OBJECTIVE_TERMS}")
@@ -219,12 +254,6 @@ class TuneConfig:
                 raise ValueError(f"tune.objective.{k}={w!r}: weight must be a finite number >= 0")
         if not any(self.objective.values()):
             raise ValueError("tune.objective: every weight is 0, nothing to minimise")
-        self.space()  # unknown controller, unknown parameter, min > max
-        for name in self.terrains:  # a wrong override (checked like the preset file's own keys)
-            try:
-                self.terrain_spec(name)
-            except ValueError as err:
-                raise ValueError(f"tune.terrain_overrides: {err}") from None
 
     def terrain_spec(self, name: str):
         """The TerrainSpec of preset `name` as this config trains on it: the corridor covers the walk, and

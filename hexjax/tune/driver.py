@@ -288,7 +288,7 @@ def plot_log(res: Dict[str, Any], path: str) -> None:
 
 
 def compare_plot(rows, path: str) -> None:
-    """Held-out objective against rollouts used, one line per method (rows: `hexjax.experiments.tuning`)."""
+    """Held-out objective against rollouts used, one line per method (rows: `hexjax.experiments.commands.tuning`)."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt

@@ -11,7 +11,7 @@ import jax
 import optax
 from tqdm.auto import tqdm
 
-from hexjax.control.registry import paper_controller
+from hexjax.control.registry import CONTROLLERS, paper_controller
 from hexjax.tune.config import TuneConfig
 from hexjax.tune.driver import cached, config_digest, drive, nonfinite_note, program_digest
 from hexjax.tune.hybrid import hybrid_value_and_grad
@@ -55,9 +55,10 @@ def tune(cfg: TuneConfig, out_dir: str, resume: bool = True, progress: bool = Tr
                          "forward-mode gradient (backward: forward needs the pyramidal cone); use backward: "
                          "sequential or parallel")
     iterations = problem.physics().iterations
-    if paper_controller(cfg.controller) == "cpg" and iterations < 4:
-        print(f"note: the CPG on yu2019 needs solver_iterations >= 4 for gradients that agree with finite "
-              f"differences (docs/tuning.md); this config runs {iterations}")
+    need = CONTROLLERS[paper_controller(cfg.controller)].grad_iterations
+    if iterations < need:
+        print(f"note: the {paper_controller(cfg.controller)} controller needs solver_iterations >= {need} for "
+              f"gradients that agree with finite differences (docs/tuning.md); this config runs {iterations}")
     u0 = problem.space.init(problem.params0)
     opt = make_optimizer(cfg)
     beta = float(cfg.optimizer.get("average") or 0.0)

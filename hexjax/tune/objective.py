@@ -41,7 +41,7 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 
 from hexjax.control.reflex import ReflexController, ReflexParams
-from hexjax.control.registry import CONTROLLERS, make_controller, paper_controller
+from hexjax.control.registry import CONTROLLERS, make_controller
 from hexjax.sim.compiled import arrays_digest
 from hexjax.sim.config import PhysicsConfig, RolloutConfig, physics_for
 from hexjax.sim.metrics import error_stats, travel_errors
@@ -282,8 +282,9 @@ def _controller(cfg: TuneConfig, robot, smooth: bool):
         return c, p0, dur
     p = with_values(p0, load_values(cfg.start), source=f"tune.start={cfg.start}")
     c.validate_params(p)
-    if paper_controller(cfg.controller) == "tactile" and "swing_time" not in cfg.space().names:
-        dur = dur * float(p.swing_time) / float(p0.swing_time)  # a slower started gait needs the longer walk
+    period = CONTROLLERS[cfg.controller].period
+    if period is not None and period not in cfg.space().names:  # a slower started gait needs the longer walk
+        dur = dur * float(getattr(p, period)) / float(getattr(p0, period))
     return c, p, dur
 
 
@@ -294,21 +295,19 @@ def _hand_rules(cfg: TuneConfig, robot, smooth: bool):
         layer = ReflexController(c)
         return layer, ReflexParams(base=p, net=layer.init_net()), dur
     st = smooth and cfg.gates == "straight_through"
-    if cfg.controller == "tactile":
-        c, dur = make_controller("tactile", robot, gait=cfg.gait, max_obstacle_height=cfg.max_obstacle_height,
-                                 smooth=smooth, straight_through=st).for_distance(cfg.distance)
-        p = c.default_params()
-        if cfg.temperature is not None:
-            p = p.replace(temperature=jnp.float32(cfg.temperature))
-        if "swing_time" in cfg.space().names:  # the rollout must cover the slowest walk the bounds allow
-            hi = dict(cfg.space().bounds)["swing_time"].hi
-            dur = dur * hi / float(p.swing_time)
-        return c, p, dur
-    c = make_controller("cpg", robot, gait=cfg.gait, smooth=smooth, straight_through=st)
+    entry = CONTROLLERS[cfg.controller]
+    c = make_controller(cfg.controller, robot, gait=cfg.gait, smooth=smooth, straight_through=st,
+                        **{f: getattr(cfg, f) for f in entry.tune_fields})
+    dur = cfg.horizon
+    if entry.stops:  # a walk with a planned stop walks `distance`
+        c, dur = c.for_distance(cfg.distance)
     p = c.default_params()
     if cfg.temperature is not None:
-        p = p.replace(temp_force=jnp.float32(cfg.temperature))
-    return c, p, cfg.horizon
+        p = p.replace(**{entry.temperature: jnp.float32(cfg.temperature)})
+    if entry.period is not None and entry.period in cfg.space().names:
+        hi = dict(cfg.space().bounds)[entry.period].hi  # the rollout must cover the slowest walk the bounds allow
+        dur = dur * hi / float(getattr(p, entry.period))
+    return c, p, dur
 
 
 def evaluate_held_out(problem: Problem, u, fn=None, model=None, which: str = "held_out",

@@ -62,6 +62,10 @@ def read_yaml(path) -> Dict[str, Any]:
             raw = yaml.safe_load(f)
     except FileNotFoundError:
         raise ValueError(f"{path}: no such file") from None
+    except IsADirectoryError:
+        raise ValueError(f"{path}: a folder, not a YAML file") from None
+    except UnicodeDecodeError:
+        raise ValueError(f"{path}: not a text file (YAML is UTF-8 text)") from None
     except yaml.YAMLError as err:
         mark = getattr(err, "problem_mark", None)
         where = f" (line {mark.line + 1})" if mark is not None else ""

@@ -12,16 +12,17 @@ import jax.numpy as jnp
 
 from hexjax.control.base import Controller
 from hexjax.control.cpg.checks import check_params
-from hexjax.control.cpg.converter import (LinearConverter, contact_neurons, converter_output, linear_converter,
-                                          quat_to_body, search_output)
+from hexjax.control.cpg.fsm import StepBlocks
+from hexjax.control.cpg.converter import (LinearConverter, converter_output, linear_converter,
+                                          quat_to_body)
 from hexjax.control.cpg.params import CPG_GAITS, CPGParams, CPGState, gait_fields
 from hexjax.control.gates import hard_gate, sigmoid_gate
-from hexjax.control.vdp import NetworkParams, locked_state, network_rhs, rk4_step
+from hexjax.control.vdp import NetworkParams, locked_state
 from hexjax.world.robot import N_LEGS, RobotSpec, leg_fk, leg_ik, leg_to_body
 
 
 @dataclasses.dataclass(frozen=True)
-class CPGController(Controller):
+class CPGController(StepBlocks, Controller):
     """The Yu 2019 controller (its readings of the paper: `hexjax.control.cpg`). Static configuration only;
     numbers are in `CPGParams` (`default_params`).
 
@@ -157,201 +158,29 @@ class CPGController(Controller):
 
     # One control step ------------------------------------------------------------------------------
     def step(self, p: CPGParams, s: CPGState, obs) -> Tuple[CPGState, jax.Array]:
-        def g(x, temp):
-            return self._gate(x, temp, p.smooth)
-
-        tf, tp = p.temp_force, p.temp_phase
-        lc = linear_converter(self.robot, p, self.stance_radial)
-        z = s.z
-
-        # Sensory neurons, Eqs. 7-9: toe force in the torso frame (x forward, y lateral, z up).
-        f = quat_to_body(obs.torso_quat, obs.foot_force)
-        # `feedback`, `elevator`, `searching` are params (0 or 1), so the variants of an experiment share one
-        # compiled program: the feedback path is computed and selected (`fb`), the reflexes are gated
-        fb = p.feedback > 0.5
-
-        def pick(a, b):
-            return jax.tree_util.tree_map(lambda x, y: jnp.where(fb, x, y), a, b)
-
-        lam_ob, lam_td = contact_neurons(p, f, lambda x: g(x, tf))
-        lam_ob, lam_td = pick((lam_ob, lam_td), (jnp.zeros(N_LEGS), jnp.ones(N_LEGS)))
-        swing, hold, search, failed = s.swing, s.hold, s.search, s.failed
-        # Table 2 ATD, "all legs get footholds" (Sect. 5.2): no leg is in the air. A leg is airborne while it
-        # swings, searches or has given up; a stance leg, or a swing leg that stopped on a touchdown (sTD),
-        # has its foothold. Counting feet above F_contact-z instead would stall the gait whenever the
-        # statically indeterminate load leaves one stance foot lightly loaded.
-        # A leg that gave up a search (`failed`) waits at its AEP posture; unless the gait walks on (`walk_on`),
-        # it counts as airborne and as running a reflex, so it holds every other leg for good (Fig. 9c).
-        waiting = failed * (1.0 - p.walk_on)
-        airborne = swing * (1.0 - hold) + search + waiting
-        atd = jnp.prod(1.0 - jnp.clip(airborne, 0.0, 1.0))
-
-        elev_on, elev, offset, hold_q, q_ref = s.elev_on, s.elev, s.offset, s.hold_q, s.q_ref
-        level, searched = s.level, s.searched
-        search_n = s.search_n
-        n_elev, n_search, n_found, n_fail, depth = s.n_elev, s.n_search, s.n_found, s.n_fail, s.depth
-        one = jnp.ones(N_LEGS)
-        kept, paused = s.kept, s.paused
-        before = (z, swing, elev_on, elev, offset, hold, hold_q, kept, level, searched, paused, depth, n_found,
-                  search, n_elev)
-
-        # the feedback path, blocks (1)-(4b); selected by `fb` after it
-        # (1) ATD releases every prolonged leg: swing-prolong -> stance, stance-prolong -> swing; a stance
-        # leg frozen mid-stance by another leg's reflex (`paused`) resumes its stance.
-        toggle = hold * atd * (1.0 - s.paused)
-        to_stance, to_swing = toggle * swing, toggle * (1.0 - swing)
-        # Table 2 aTD: a stance ends when the alien group touches down. Generalised to Eq. 16 gaits: the
-        # legs of the swing slot after the one landing now lift off, wherever they are in their stance.
-        nxt = jnp.mod(p.leg_slot + 1.0, p.duty)
-        # slots are whole numbers: matching them is structure, not a decision, so it is exact in both forms
-        follows = (jnp.abs(p.leg_slot[:, None] - nxt[None, :]) < 0.5).astype(jnp.float32)
-        forced = (1.0 - swing) * (1.0 - toggle) * atd * jnp.clip(follows @ to_stance, 0.0, 1.0)
-        to_swing = to_swing + forced
-        rel = toggle + forced
-        # The leader keeps its position and amplitude and moves on in the new direction at the new
-        # Eq. 16 frequency (a swing stopped early by a touchdown turns back from where it stopped).
-        w_sw, w_st = self._leader_omegas(p)
-        y1 = z[:, 0, 1]
-        y1_st = -jnp.abs(y1) * (w_st / w_sw)
-        y1_sw = jnp.abs(y1) * (w_sw / w_st)
-        z = z.at[:, 0, 1].set(y1 + to_stance * (y1_st - y1) + to_swing * (y1_sw - y1))
-        z = self._reset_followers(z, rel)
-        swing = swing + rel * (1.0 - 2.0 * swing)
-        failed = failed * (1.0 - rel)  # released with its group (only reached with walk_on: else ATD never comes)
-        elev_on, elev = elev_on * (1.0 - to_stance), elev * (1.0 - to_stance)
-        zero3 = jnp.zeros((N_LEGS, 3))
-        q_new = converter_output(p, lc, z, swing, elev, zero3, zero3, searched)  # the bare converter
-        # Offsets carry a searched foothold, or one found more than `raised_tolerance` above the feet in
-        # stance (the top of a step), through the next stance, and keep the PEP->swing hand-over continuous.
-        # After an ordinary touchdown the stance converter takes over as it is: an offset there would
-        # ratchet the body down by every slightly early touchdown.
-        above = self._height_above_support(obs, s.q_cmd, s.swing, s.level)
-        raised = g(above - p.raised_tolerance, p.temp_height)
-        carry = to_swing + to_stance * (1.0 - (1.0 - s.kept) * (1.0 - raised))
-        offset = offset + rel[:, None] * (carry[:, None] * (s.q_cmd - q_new) - offset)
-        kept = s.kept * (1.0 - rel)
-        # A leg released into stance records the height of a raised foothold (more than `raised_tolerance`
-        # up): measured afresh along gravity against the other feet at every touchdown, so a sagging or
-        # tilted torso does not build up in it. A searched foothold is held as found instead.
-        level = level + to_stance * (raised * (1.0 - s.kept) * above - level)
-        searched = s.searched + to_stance * (s.kept - s.searched)
-        hold = hold * (1.0 - atd)
-        paused = s.paused * (1.0 - atd)
-
-        # (2) A searching leg that touches down has found its foothold: stop, hold the posture, and
-        # put the network at the end of swing so the next stance starts in step with the others.
-        found = search * lam_td
-        q_meas = obs.qpos.reshape(N_LEGS, 3)
-        z_foot = leg_fk(self.robot, q_meas)[:, 2]
-        depth = jnp.maximum(depth, found * (lc.z_aep - z_foot))
-        n_found = n_found + found
-        z_end = locked_state(jnp.zeros(N_LEGS), self._omegas(p, one, jnp.zeros(N_LEGS))[:, 0])
-        z = z + found[:, None, None] * (z_end - z)
-        hold_q = hold_q + found[:, None] * (s.q_cmd - hold_q)
-        # the leg holds the posture it found; at release it becomes the stance offset (`kept`)
-        hold = hold + found * (1.0 - hold)
-        kept = kept + found * (1.0 - kept)
-        search = search * (1.0 - found)
-
-        # (3) Elevator reflex, Eqs. 10-11: rising edge of lambda_ob while the leg sweeps forward (gated by
-        # the `elevator` param).
-        rise = lam_ob * (1.0 - s.lam_ob)
-        # "halfway of the swing": once the leader is past `elevator_window`; at lift-off the foot
-        # still carries its stance load and friction alone can exceed F_contact-x/y.
-        # Once per swing: a regenerated swing that meets the face again goes on and lands in front
-        # of it (the next swing then meets the face earlier and clears it), instead of retracting
-        # again and again against a face near its AEP.
-        ert = (swing * (1.0 - hold) * (1.0 - search) * (1.0 - elev_on) * g(z[:, 0, 1], tp)
-               * g(z[:, 0, 0] - p.elevator_window, tp) * rise) * p.elevator
-        scale = self._omegas(p, one, jnp.zeros(N_LEGS))[:, 0] / p.net.omega[0]
-        target = p.elevator_y1 * scale
-        z = z.at[:, 0, 1].add(ert * (target - z[:, 0, 1]))
-        z = self._reset_followers(z, ert)
-        elev_on = elev_on + ert * (1.0 - elev_on)
-        n_elev = n_elev + ert
-
-        # (4) Early touchdown past the apex aborts the swing: swing-prolong (Table 2 sTD).
-        # A foot scraping an edge (lambda_ob on) has not landed.
-        etd = (swing * (1.0 - hold) * (1.0 - search) * lam_td * (1.0 - lam_ob)
-               * g(z[:, 0, 0], tp) * g(z[:, 0, 1], tp))
-        hold_q = hold_q + etd[:, None] * (s.q_cmd - hold_q)
-        hold = hold + etd * (1.0 - hold)
-
-        # (4b) "The FSM synchronizes the legs by enforcing the leg on the ground come into the Swing/Stance
-        # Prolong state until the leg executing local reflex reaches the touchdown state" (Sect. 5.2):
-        # while any leg runs a reflex, every stance leg freezes where it is.
-        reflex = 1.0 - jnp.prod(1.0 - jnp.clip(elev_on + search + waiting, 0.0, 1.0))
-        pz = reflex * (1.0 - swing) * (1.0 - hold)
-        hold_q = hold_q + pz[:, None] * (s.q_cmd - hold_q)
-        hold = hold + pz * (1.0 - hold)
-        paused = paused + pz * (1.0 - paused)
-        (z, swing, elev_on, elev, offset, hold, hold_q, kept, level, searched, paused, depth, n_found, search,
-         n_elev) = pick((z, swing, elev_on, elev, offset, hold, hold_q, kept, level, searched, paused, depth, n_found,
-                         search, n_elev), before)
-
-        # (5) Integrate the network one control period (RK4); prolonged legs are frozen.
-        omega = self._omegas(p, swing, search)
-        k = p.net.k[None, :] * jnp.concatenate([(1.0 - search)[:, None] * jnp.ones((1, 2)), jnp.ones((N_LEGS, 2))], -1)
-        rate = (1.0 - hold)[:, None, None]
-
-        def rhs(zz):
-            return rate * network_rhs(zz, omega, p.net.eps[None, :], p.net.b[None, :], k)
-
-        z_old = z
-        z = rk4_step(rhs, z, self.dt)
-        elev = jnp.minimum(1.0, elev + elev_on * self.dt / p.ramp_time)
-        y_old, y_new, x_new = z_old[:, 0, 1], z[:, 0, 1], z[:, 0, 0]
-        cross_fwd_end = g(y_old, tp) * g(-y_new, tp) * g(x_new, tp)  # leader at its AEP turning point
-        cross_back_end = g(-y_old, tp) * g(y_new, tp) * g(-x_new, tp)  # leader at its PEP turning point
-
-        dq_level = self._level_offset(lc, level)
-        q_lc = converter_output(p, lc, z, swing, elev, offset, dq_level, searched)
-        q_search = search_output(p, lc, z, q_ref, search_n)
-
-        blind = (hold_q, hold, q_ref, search_n, search, n_search, failed, n_fail, q_search)
-        # the feedback path, block (6); selected by `fb` after it
-        # (6) End of swing: touchdown -> swing-prolong; none -> searching reflex (SRT, Eqs. 12-15).
-        end_sw = swing * (1.0 - hold) * (1.0 - search) * cross_fwd_end
-        srt = end_sw * (1.0 - lam_td) * p.searching
-        stop = end_sw - srt
-        hold_q = hold_q + stop[:, None] * (q_lc - hold_q)
-        hold = hold + stop * (1.0 - hold)
-        q_ref = q_ref + srt[:, None] * (q_lc - q_ref)
-        search_n = search_n * (1.0 - srt)
-        search = search + srt * (1.0 - search)
-        n_search = n_search + srt
-        # End of stance -> stance-prolong until ATD (aTD of the alien group is part of ATD).
-        end_st = (1.0 - swing) * (1.0 - hold) * cross_back_end
-        hold_q = hold_q + end_st[:, None] * (q_lc - hold_q)
-        hold = hold + end_st * (1.0 - hold)
-        # A search period ends when the slowed leader is back at the AEP: search deeper, or give up.
-        period = search * cross_fwd_end * (1.0 - srt)
-        more = g(self.search_periods - 1.5 - search_n, tp)
-        search_n = search_n + period * more
-        give_up = period * (1.0 - more)
-        failed = failed + give_up * (1.0 - failed)
-        hold_q = hold_q + give_up[:, None] * (q_ref - hold_q)
-        hold = hold + give_up * (1.0 - hold)
-        search = search * (1.0 - give_up)
-        n_fail = n_fail + give_up
-        q_search = search_output(p, lc, z, q_ref, search_n)
-        # blind: the swing follows the leader's sign and the converter runs bare
-        swing_blind = g(z[:, 0, 1], tp)
-        q_lc_blind = converter_output(p, lc, z, swing_blind, elev, offset, dq_level, searched)
-        (hold_q, hold, q_ref, search_n, search, n_search, failed, n_fail, q_search, swing, q_lc) = pick(
-            (hold_q, hold, q_ref, search_n, search, n_search, failed, n_fail, q_search, swing, q_lc),
-            blind + (swing_blind, q_lc_blind))
-
-        q_free = search[:, None] * q_search + (1.0 - search[:, None]) * q_lc
-        q = hold[:, None] * hold_q + (1.0 - hold[:, None]) * q_free
-        any_search = 1.0 - jnp.prod(1.0 - search)
-        wait = hold * (1.0 - swing) * any_search
-        new = CPGState(z=z, swing=swing, hold=hold, elev_on=elev_on, elev=elev, search=search, search_n=search_n,
-                       failed=failed, q_ref=q_ref, hold_q=hold_q, offset=offset, lam_ob=lam_ob, q_cmd=q,
-                       q_meas=obs.qpos.reshape(N_LEGS, 3),
-                       kept=kept, level=level, searched=searched, paused=paused,
-                       n_elev=n_elev, n_search=n_search, n_found=n_found, n_fail=n_fail, depth=depth,
-                       wait_steps=s.wait_steps + wait, t=s.t + self.dt)
+        """One control period: the contact neurons, the event FSM and the reflexes on the feedback path (selected
+        by the `feedback` param), the network's RK4 step, the converter; blocks in `hexjax.control.cpg.fsm`."""
+        v = self._sense(p, s, obs)
+        before = (v.z, v.swing, v.elev_on, v.elev, v.offset, v.hold, v.hold_q, v.kept, v.level, v.searched, v.paused,
+                  v.depth, v.n_found, v.search, v.n_elev)
+        for block in (self._release, self._found, self._elevator, self._early_touchdown, self._pause):
+            block(p, s, obs, v)
+        (v.z, v.swing, v.elev_on, v.elev, v.offset, v.hold, v.hold_q, v.kept, v.level, v.searched, v.paused, v.depth,
+         v.n_found, v.search, v.n_elev) = v.pick((v.z, v.swing, v.elev_on, v.elev, v.offset, v.hold, v.hold_q, v.kept,
+                                                 v.level, v.searched, v.paused, v.depth, v.n_found, v.search,
+                                                 v.n_elev), before)
+        self._integrate(p, s, obs, v)
+        self._end_of_phase(p, s, obs, v)
+        q_free = v.search[:, None] * v.q_search + (1.0 - v.search[:, None]) * v.q_lc
+        q = v.hold[:, None] * v.hold_q + (1.0 - v.hold[:, None]) * q_free
+        any_search = 1.0 - jnp.prod(1.0 - v.search)
+        wait = v.hold * (1.0 - v.swing) * any_search
+        new = CPGState(z=v.z, swing=v.swing, hold=v.hold, elev_on=v.elev_on, elev=v.elev, search=v.search,
+                       search_n=v.search_n, failed=v.failed, q_ref=v.q_ref, hold_q=v.hold_q, offset=v.offset,
+                       lam_ob=v.lam_ob, q_cmd=q, q_meas=obs.qpos.reshape(N_LEGS, 3), kept=v.kept, level=v.level,
+                       searched=v.searched, paused=v.paused, n_elev=v.n_elev, n_search=v.n_search,
+                       n_found=v.n_found, n_fail=v.n_fail, depth=v.depth, wait_steps=s.wait_steps + wait,
+                       t=s.t + self.dt)
         return new, q.reshape(-1)
 
     def _level_offset(self, lc: LinearConverter, level):

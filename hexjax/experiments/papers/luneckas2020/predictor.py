@@ -31,8 +31,8 @@ import optax
 from flax import serialization
 from tqdm.auto import tqdm
 
-from hexjax.experiments.luneckas2020 import error_model as em
-from hexjax.experiments.luneckas2020.dataset import (FEATURES, concat_datasets, dataset_meta, load_dataset,
+from hexjax.experiments.papers.luneckas2020 import error_model as em
+from hexjax.experiments.papers.luneckas2020.dataset import (FEATURES, concat_datasets, dataset_meta, load_dataset,
                                                      split_by_terrain)
 
 

@@ -3,7 +3,7 @@
 `chen2019` experiment) against the same planner mapping the patch itself with a depth camera on its torso
 ("perceived", `PerceivingSupportPlan`: scans -> 2.5D grid of mean heights, Zhao 2018 Sect. 5 -> RANSAC
 ground -> unknown cells filled), over the same randomised patches, rollout keys and physics
-(`hexjax.experiments.chen2019.patch.run_chen2019`, which runs both). Reported: capsizes, crossings, tilt,
+(`hexjax.experiments.papers.chen2019.patch.run_chen2019`, which runs both). Reported: capsizes, crossings, tilt,
 and how far the final map is from the true DEM over the patch.
 """
 
@@ -14,7 +14,7 @@ from typing import Dict
 import numpy as np
 
 from hexjax.sim.engines import RANGE_SENSORS, TRACES
-from hexjax.experiments.chen2019 import patch
+from hexjax.experiments.papers.chen2019 import patch
 from hexjax.perceive.sensors import get_sensor
 
 NEEDS = frozenset({RANGE_SENSORS, TRACES})  # the walks' traces, the torso's range sensor (the runner picks once)

@@ -22,8 +22,9 @@ from typing import Dict, List, Sequence, Tuple
 import numpy as np
 
 from hexjax import cache
+from hexjax.control.registry import CONTROLLERS
 from hexjax.experiments.runner import read_partial, write_partial
-from hexjax.experiments.robustness_view import ENVELOPE_SUCCESS, plot, report  # noqa: F401 (plot, report: the registry's)
+from hexjax.experiments.commands.robustness_view import ENVELOPE_SUCCESS, plot, report  # noqa: F401 (plot, report: the registry's)
 from hexjax.world.files import read_yaml
 from hexjax.world.randomization import AXES as RANDOM_AXES
 from hexjax.world.randomization import randomization_from_dict
@@ -38,9 +39,8 @@ HARDER = {"obstacle_height": 1, "obstacle_length": 1, "obstacle_width": 1, "obst
           "torque_scale": -1, "damping_scale": 1, "latency_steps": 1, "force_noise_n": 1, "force_bias_n": 1,
           "force_dropout": 1, "tactile_noise_n": 1, "tactile_bias_n": 1, "tactile_dropout": 1,
           "fault_time_s": -1, "fault_probability": 1}
-CONTROLLERS = ("gait", "tactile", "cpg", "avoid")
-# terrain kinds whose height_range is the height of what stands in the way (the tactile switch's H, Eq. 7)
-HEIGHT_KINDS = ("obstacles", "step", "stairs", "boxes", "rough", "waves")
+# the controllers a sweep can walk: from their default params, or by their registry rule for a terrain cell
+SWEEPABLE = tuple(n for n, e in CONTROLLERS.items() if e.sweeps)
 
 
 def parse_axis(text: str) -> Tuple[str, List[float]]:
@@ -139,32 +139,12 @@ def _controllers(names, default_robot):
     out = {}
     for label in names:
         name, _, rname = str(label).partition("@")
-        if name not in CONTROLLERS:
-            raise ValueError(f"--controllers {label!r}: use some of {', '.join(CONTROLLERS)} "
+        if name not in SWEEPABLE:
+            raise ValueError(f"--controllers {label!r}: use some of {', '.join(SWEEPABLE)} "
                              "(optionally name@robot)")
         robot = get_robot(rname) if rname else default_robot
         out[str(label)] = (make_controller(name, robot), robot)
     return out
-
-
-def _avoid_params(ctrl, terr, kind: str, distance: float):
-    """Per-env params of the avoiding gait: target `distance` ahead, the terrain's boxes as its obstacle circles
-    (Zhao 2018 Eq. 1) on obstacle and box terrains (elsewhere the boxes are the ground: none), less those
-    that cover the start or the target (no walk could avoid them), goal tolerance 3 cm."""
-    import jax.numpy as jnp
-
-    from hexjax.control.avoid_gait import field_params
-    from hexjax.plan.fields import Fields
-    from hexjax.world.terrain import obstacle_circles
-    c, r, v = obstacle_circles(terr)
-    b = c.shape[0]
-    target = jnp.broadcast_to(jnp.array([distance, 0.0]), (b, 2))
-    p0 = field_params(ctrl, Fields(start=jnp.zeros((b, 2)), target=target, centres=c, radii=r, valid=v,
-                                   lane=jnp.zeros((b, 2, 2))))
-    margin = r + p0.avoid.robot_radii[:, :1]
-    clear = (jnp.linalg.norm(c - target[:, None], axis=-1) > margin) & (jnp.linalg.norm(c, axis=-1) > margin)
-    v = v & clear & (kind in ("obstacles", "boxes"))
-    return p0.replace(valid=v, avoid=p0.avoid.replace(goal_tol=jnp.full((b,), 0.03, jnp.float32)))
 
 
 def _checked(o):
@@ -181,6 +161,9 @@ def _checked(o):
     raw = read_yaml(o.randomization) if o.randomization else None
     if raw is not None and "randomization" in raw:  # a file with a randomization: block, or the block alone
         raw = raw["randomization"]
+    if o.randomization and not raw:  # as an empty --physics file is refused: it most likely is not the one meant
+        raise ValueError(f"--randomization={o.randomization!r}: an empty randomization: give its keys "
+                         "(docs/robustness.md lists them)")
     return axes, randomization_from_dict(raw, source=o.randomization or "randomization")
 
 
@@ -190,15 +173,7 @@ def sweep(o) -> Dict:
     import jax
     from tqdm.auto import tqdm
 
-    from hexjax.control.tactile import overcome_height
-    from hexjax.sim.engines import MESH
-    from hexjax.sim.metrics import batch_stats, goal_errors
-    from hexjax.sim.config import RolloutConfig
-    from hexjax.sim.rollout import make_mesh, rollout
-    from hexjax.tune.space import with_values
-    from hexjax.world.presets import get_robot, get_terrain
-    from hexjax.world.randomization import sample_perturbation
-    from hexjax.world.terrain import leg_scale, pad_terrain, sample
+    from hexjax.world.presets import get_robot
 
     chosen = _engine(o)  # one ValueError line for an --engine without a device mesh across several processes
     engine = chosen.engine
@@ -206,39 +181,10 @@ def sweep(o) -> Dict:
         print(chosen.header(), flush=True)
     robot = get_robot(o.robot)
     ctrls = _controllers(o.controllers, robot)
-    base_terrain = get_terrain(o.terrain, length=o.distance + 0.3)
-    for name, _ in axes:
-        if name in TERRAIN_AXES and name != "difficulty" and base_terrain.kind != "obstacles":
-            raise ValueError(f"--axis {name}: needs an obstacle terrain (--terrain {o.terrain!r} is "
-                             f"{base_terrain.kind!r})")
-    cells = list(itertools.product(*[v for _, v in axes]))
-    t_specs, r_specs = [], []
-    for values in cells:
-        t, r = base_terrain, base_rand
-        for (name, _), v in zip(axes, values):
-            if name == "difficulty":
-                t = t.at_difficulty(v, leg_scale(robot))
-            elif name in TERRAIN_AXES:
-                t = dataclasses.replace(t, **{TERRAIN_AXES[name]: (v, v)})
-            else:
-                r = r.with_value(name, v)
-        t.validate()
-        t_specs.append(t)
-        r_specs.append(r)
+    base_terrain, cells, t_specs, r_specs = _cells(o, axes, base_rand, robot)
     physics = chosen.config(base_terrain)
     physics.validate()
-    # each cell's envs sharded over as many devices as divide the batch (several GPUs, or a CPU's cores); with
-    # several processes (jax.distributed) over every device of every process
-    if jax.process_count() > 1:
-        n_dev = len(jax.devices())
-        if o.batch % n_dev:
-            raise ValueError(f"--batch={o.batch}: must be a multiple of the {n_dev} devices of the "
-                             f"{jax.process_count()} processes")
-    else:
-        n_dev = max(d for d in range(1, len(jax.devices()) + 1) if o.batch % d == 0)
-    if engine.lacks({MESH}):  # warp and c run on one device / the host's threads
-        n_dev = 1
-    mesh = make_mesh(jax.devices()[:n_dev]) if n_dev > 1 else None
+    n_dev, mesh = _devices(o.batch, engine)
     lead = jax.process_index() == 0  # writes the partial file; the others only compute their shards
     note = solver_note(base_terrain.kind, engine, physics.iterations)
     if note and lead:
@@ -269,51 +215,109 @@ def sweep(o) -> Dict:
         bar.set_postfix_str(f"{cname} " + ", ".join(f"{n}={v:g}" for (n, _), v in zip(axes, cells[i])))
         if tag in skip:
             continue
-        ctrl, rb, duration = plan[cname]
-        k_t, k_r, k_p = jax.random.split(jax.random.fold_in(key, i), 3)
-        terr = pad_terrain(sample(t_specs[i], k_t, o.batch), n_box)
-        pert = sample_perturbation(r_specs[i], k_p, o.batch)
-        params = ctrl.default_params()
-        kind = cname.partition("@")[0]
-        if kind == "tactile" and t_specs[i].kind in HEIGHT_KINDS:  # Eq. 7's H: the cell's highest obstacle
-            params = with_values(params, {"overcome_height": overcome_height(t_specs[i].height_range[1])})
-        if kind == "avoid":
-            params = _avoid_params(ctrl, terr, t_specs[i].kind, o.distance)
-        summ, st = rollout(rb, terr, ctrl, params, duration, k_r, physics=physics, config=RolloutConfig(),
-                           perturbation=pert, stats=True, mesh=mesh, params_batched=kind == "avoid",
-                           engine=engine.name)
-        errs = goal_errors(summ, o.distance)
-        stats = batch_stats(summ, errs, o.distance)
-        k = int(np.asarray(errs.success).sum())
-        stats.update(successes=k, success_ci95=list(wilson(k, o.batch)), wall_s=st.run_s, compile_s=st.compile_s)
-        if getattr(o, "per_env", False):
-            stats["per_env"] = {f: np.asarray(getattr(errs, f)).tolist() for f in ("dx", "dy", "dalpha", "success")}
-            stats["per_env"].update(fell=np.asarray(summ.fell).tolist(), energy_J=np.asarray(summ.energy).tolist())
-        compile_s[cname] += st.compile_s
+        stats = _walk_cell(o, cname, plan[cname], t_specs[i], r_specs[i], jax.random.fold_in(key, i), n_box,
+                           physics, mesh, engine)
+        compile_s[cname] += stats["compile_s"]
         done[tag] = stats
         if partial and lead:
             write_partial(partial, {"digest": digest, "cells": done},
                           f"{len(done)} of {len(jobs)} cells kept in {partial}; the same command resumes after them")
     if not lead:  # process 0 gathers every cell and writes the results
         return {"process": jax.process_index(), "cells_run": len(jobs) - len(skip)}
-    rows = []
-    for cname in ctrls:
-        for i, values in enumerate(cells):
-            rows.append(dict(controller=cname, **{n: v for (n, _), v in zip(axes, values)}, **done[f"{cname}|{i}"]))
+    rows = [dict(controller=cname, **{n: v for (n, _), v in zip(axes, values)}, **done[f"{cname}|{i}"])
+            for cname in ctrls for i, values in enumerate(cells)]
+    return {"config": dict(controllers=list(ctrls), axes={n: v for n, v in axes}, batch=o.batch, robot=robot.name,
+                           terrain=o.terrain, distance_m=o.distance, seed=o.seed, randomization=base_rand.to_dict(),
+                           robots={c: plan[c][1].name for c in ctrls},
+                           durations_s={c: plan[c][2] for c in ctrls}, backend=jax.default_backend(),
+                           devices=n_dev, processes=jax.process_count(), engine=engine.name),
+            "cells": rows, "envelope": _envelopes(rows, axes, ctrls), "compile_s": compile_s,
+            "physics": chosen.record()}
+
+
+def _cells(o, axes, base_rand, robot):
+    """(base terrain, the cells' axis values, each cell's terrain spec and randomization) of the sweep."""
+    from hexjax.world.presets import get_terrain
+    from hexjax.world.terrain import leg_scale
+    base_terrain = get_terrain(o.terrain, length=o.distance + 0.3)
+    for name, _ in axes:
+        if name in TERRAIN_AXES and name != "difficulty" and base_terrain.kind != "obstacles":
+            raise ValueError(f"--axis {name}: needs an obstacle terrain (--terrain {o.terrain!r} is "
+                             f"{base_terrain.kind!r})")
+    cells = list(itertools.product(*[v for _, v in axes]))
+    t_specs, r_specs = [], []
+    for values in cells:
+        t, r = base_terrain, base_rand
+        for (name, _), v in zip(axes, values):
+            if name == "difficulty":
+                t = t.at_difficulty(v, leg_scale(robot))
+            elif name in TERRAIN_AXES:
+                t = dataclasses.replace(t, **{TERRAIN_AXES[name]: (v, v)})
+            else:
+                r = r.with_value(name, v)
+        t.validate()
+        t_specs.append(t)
+        r_specs.append(r)
+    return base_terrain, cells, t_specs, r_specs
+
+
+def _devices(batch: int, engine):
+    """(devices, mesh or None): each cell's envs sharded over as many devices as divide the batch (several GPUs,
+    or a CPU's cores); with several processes (jax.distributed) over every device of every process."""
+    import jax
+
+    from hexjax.sim.engines import MESH
+    from hexjax.sim.rollout import make_mesh
+    if jax.process_count() > 1:
+        n_dev = len(jax.devices())
+        if batch % n_dev:
+            raise ValueError(f"--batch={batch}: must be a multiple of the {n_dev} devices of the "
+                             f"{jax.process_count()} processes")
+    else:
+        n_dev = max(d for d in range(1, len(jax.devices()) + 1) if batch % d == 0)
+    if engine.lacks({MESH}):  # warp and c run on one device / the host's threads
+        n_dev = 1
+    return n_dev, make_mesh(jax.devices()[:n_dev]) if n_dev > 1 else None
+
+
+def _walk_cell(o, cname: str, planned, t_spec, r_spec, key, n_box: int, physics, mesh, engine) -> Dict:
+    """One cell's walks for controller `cname` ((controller, robot, seconds) in `planned`): its statistics."""
+    import jax
+
+    from hexjax.sim.config import RolloutConfig
+    from hexjax.sim.metrics import batch_stats, goal_errors
+    from hexjax.sim.rollout import rollout
+    from hexjax.world.randomization import sample_perturbation
+    from hexjax.world.terrain import pad_terrain, sample
+    ctrl, rb, duration = planned
+    k_t, k_r, k_p = jax.random.split(key, 3)
+    terr = pad_terrain(sample(t_spec, k_t, o.batch), n_box)
+    pert = sample_perturbation(r_spec, k_p, o.batch)
+    rule = CONTROLLERS[cname.partition("@")[0]].cell_params  # e.g. Eq. 7's H: the cell's highest obstacle
+    params, batched = rule(ctrl, t_spec, terr, o.distance) if rule else (ctrl.default_params(), False)
+    summ, st = rollout(rb, terr, ctrl, params, duration, k_r, physics=physics, config=RolloutConfig(),
+                       perturbation=pert, stats=True, mesh=mesh, params_batched=batched, engine=engine.name)
+    errs = goal_errors(summ, o.distance)
+    stats = batch_stats(summ, errs, o.distance)
+    k = int(np.asarray(errs.success).sum())
+    stats.update(successes=k, success_ci95=list(wilson(k, o.batch)), wall_s=st.run_s, compile_s=st.compile_s)
+    if getattr(o, "per_env", False):
+        stats["per_env"] = {f: np.asarray(getattr(errs, f)).tolist() for f in ("dx", "dy", "dalpha", "success")}
+        stats["per_env"].update(fell=np.asarray(summ.fell).tolist(), energy_J=np.asarray(summ.energy).tolist())
+    return stats
+
+
+def _envelopes(rows, axes, ctrls) -> Dict:
+    """Each controller's success envelope along the first axis (per value of the second, where there is one)."""
     env = {}
-    first, fvals = axes[0]
+    first = axes[0][0]
     for cname in ctrls:
         groups = [()] if len(axes) == 1 else [(v,) for v in axes[1][1]]
         for g in groups:
             sel = [r for r in rows if r["controller"] == cname and (not g or r[axes[1][0]] == g[0])]
             label = cname if not g else f"{cname} | {axes[1][0]}={g[0]:g}"
             env[label] = envelope([r[first] for r in sel], [(r["successes"], r["n"]) for r in sel], first)
-    return {"config": dict(controllers=list(ctrls), axes={n: v for n, v in axes}, batch=o.batch, robot=robot.name,
-                           terrain=o.terrain, distance_m=o.distance, seed=o.seed, randomization=base_rand.to_dict(),
-                           robots={c: plan[c][1].name for c in ctrls},
-                           durations_s={c: plan[c][2] for c in ctrls}, backend=jax.default_backend(),
-                           devices=n_dev, processes=jax.process_count(), engine=engine.name),
-            "cells": rows, "envelope": env, "compile_s": compile_s, "physics": chosen.record()}
+    return env
 
 
 def _host_devices():
@@ -330,10 +334,10 @@ def _distributed(o) -> None:
     n, pid, coord = o.processes, o.process_id, str(o.coordinator)
     if not (isinstance(n, int) and n >= 1):
         raise ValueError(f"--processes={n!r}: must be a whole number >= 1")
+    if not (isinstance(pid, int) and 0 <= pid < n):
+        raise ValueError(f"--process-id={pid!r}: must be in [0, {n - 1}] (--processes {n})")
     if n == 1:
         return
-    if not (isinstance(pid, int) and 0 <= pid < n):
-        raise ValueError(f"--process-id={pid!r}: must be in [0, {n - 1}]")
     host, _, port = coord.rpartition(":")
     if not host or not port.isdigit():
         raise ValueError(f"--coordinator={coord!r}: write host:port (process 0's address)")

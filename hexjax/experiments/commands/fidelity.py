@@ -34,7 +34,7 @@ from typing import Dict, List, Optional
 
 import numpy as np
 
-from hexjax.experiments.fidelity_view import CONTRACT, plot, report  # noqa: F401 (plot, report: the registry's)
+from hexjax.experiments.commands.fidelity_view import CONTRACT, plot, report  # noqa: F401 (plot, report: the registry's)
 from hexjax.sim.metrics import paired
 from hexjax.experiments.runner import keep_piece, read_kept, read_partial, write_partial
 
@@ -134,9 +134,7 @@ def _cell_inputs(o, cell: Cell, j: int, rb, label: str, ctrl, key):
     depend on (seed, j) alone, so both presets and every controller see the same ones."""
     import jax
 
-    from hexjax.control.tactile import overcome_height
-    from hexjax.experiments.robustness import HEIGHT_KINDS, _avoid_params
-    from hexjax.tune.space import with_values
+    from hexjax.control.registry import CONTROLLERS
     from hexjax.world.presets import get_terrain
     from hexjax.world.randomization import randomization_from_dict, sample_perturbation
     from hexjax.world.terrain import leg_scale, sample
@@ -149,15 +147,13 @@ def _cell_inputs(o, cell: Cell, j: int, rb, label: str, ctrl, key):
     if cell.friction is not None:
         rnd["friction"] = cell.friction
     pert = sample_perturbation(randomization_from_dict(rnd), k_p, o.batch)
-    kind = label.partition("@")[0]
+    rule = CONTROLLERS[label.partition("@")[0]].cell_params  # None: every env walks the controller's defaults
     params = None
-    if kind == "tactile":
-        p = ctrl.default_params()
-        if spec.kind in HEIGHT_KINDS:
-            p = with_values(p, {"overcome_height": overcome_height(spec.height_range[1])})
-        params = jax.tree_util.tree_map(lambda x: np.broadcast_to(np.asarray(x), (o.batch,) + np.shape(x)), p)
-    elif kind == "avoid":
-        params = _avoid_params(ctrl, terr, spec.kind, o.distance)
+    if rule is not None:  # per env, so that cells of one group concatenate
+        params, batched = rule(ctrl, spec, terr, o.distance)
+        if not batched:
+            params = jax.tree_util.tree_map(lambda x: np.broadcast_to(np.asarray(x), (o.batch,) + np.shape(x)),
+                                            params)
     return spec, terr, pert, params
 
 
@@ -295,7 +291,7 @@ def _replay_rows(times, rep_a: Dict, rep_b: Dict) -> List[Dict]:
 
 
 def run(o, entry) -> Dict:
-    from hexjax.experiments.robustness import _controllers, _host_devices
+    from hexjax.experiments.commands.robustness import _controllers, _host_devices
     if not (isinstance(o.batch, int) and o.batch >= 1):
         raise ValueError(f"--batch={o.batch!r}: must be a whole number >= 1")
     spec = entry.preset

@@ -1,4 +1,4 @@
-"""The printed table and the figure of a `hexjax robustness` sweep (`hexjax.experiments.robustness`)."""
+"""The printed table and the figure of a `hexjax robustness` sweep (`hexjax.experiments.commands.robustness`)."""
 
 from __future__ import annotations
 

@@ -25,7 +25,7 @@ FIELD = "zhao-field"  # --terrain value: a random field of zhao2018-mjx (0.25 m 
 def _terrain(name: str, seed: int, robot) -> Terrain:
     if name == FIELD:
         from hexjax.control.registry import make_controller
-        from hexjax.experiments.zhao2018.closed_loop import field_setup, obstacle_boxes, seeded_fields
+        from hexjax.experiments.papers.zhao2018.closed_loop import field_setup, obstacle_boxes, seeded_fields
         f, k_box = seeded_fields(seed, 1, field_setup(make_controller("avoid", robot))[1])
         return jax.tree_util.tree_map(lambda x: x[0], obstacle_boxes(k_box, f))
     return jax.tree_util.tree_map(lambda x: x[0], sample(get_terrain(name), jax.random.PRNGKey(seed), 1))

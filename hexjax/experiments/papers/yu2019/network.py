@@ -23,7 +23,7 @@ import numpy as np
 from hexjax.control.cpg import CPG_GAITS, MODE_NAMES, gait_fields
 from hexjax.control.registry import make_controller
 from hexjax.control.vdp import NetworkParams, integrate, phase_amplitude
-from hexjax.experiments.yu2019 import paired_rows
+from hexjax.experiments.papers.yu2019.steps import paired_rows
 from hexjax.sim.config import RolloutConfig
 from hexjax.sim.engines import TRACES
 from hexjax.sim.physics import pick

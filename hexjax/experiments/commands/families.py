@@ -11,9 +11,9 @@ from typing import Dict, List, Sequence
 import jax
 import numpy as np
 
-from hexjax.control.registry import make_controller
+from hexjax.control.registry import CONTROLLERS, make_controller
 from hexjax.sim.metrics import error_stats, goal_errors
-from hexjax.experiments.robustness import wilson
+from hexjax.experiments.commands.robustness import wilson
 from hexjax.experiments.runner import step_bar
 from hexjax.sim.physics import PhysicsConfig, shared_config
 from hexjax.sim.rollout import rollout
@@ -31,7 +31,6 @@ def walk_families(controller: str, families: Sequence[str], levels: Sequence[flo
     The tactile method's overcome height (Luneckas 2020 Eq. 7's h_k) is set per env from its stairs' or boxes'
     height. A bar counts the rollout's control steps (`progress`). engine: the engine (`rollout`'s). Returns
     (summary, goal errors, rollout stats, the physics run)."""
-    from hexjax.control.tactile import overcome_height
     rob = get_robot(robot)
     specs = [get_terrain(f, start_x=start_x, length=distance + 0.4).at_difficulty(d) for f in families
              for d in levels]
@@ -40,13 +39,9 @@ def walk_families(controller: str, families: Sequence[str], levels: Sequence[flo
     terr = jax.tree_util.tree_map(lambda *x: np.concatenate(x), *parts)
     phys = shared_config(physics, specs)
     ctrl, duration = make_controller(controller, rob).for_distance(distance)
-    params = ctrl.default_params()
-    per_env = controller == "tactile"
-    if per_env:
-        h = np.array([s.height_range[1] if s.kind in ("stairs", "boxes") else 0.03 for s in specs])
-        nb = len(specs) * batch
-        params = jax.tree_util.tree_map(lambda x: np.broadcast_to(np.asarray(x), (nb,) + np.shape(x)), params)
-        params = params.replace(overcome_height=np.repeat(overcome_height(h), batch).astype(np.float32))
+    rule = CONTROLLERS[controller].family_params  # e.g. the tactile method's h_k per env (Eq. 7)
+    per_env = rule is not None
+    params = rule(ctrl, specs, batch) if per_env else ctrl.default_params()
     with step_bar(f"{controller} x {len(specs) * batch} envs", ctrl.dt, duration, every=10, enabled=progress) as cfg:
         s, st = rollout(rob, terr, ctrl, params, duration, jax.random.PRNGKey(WALK_KEY), physics=phys, stats=True,
                         params_batched=per_env, config=cfg, engine=engine)

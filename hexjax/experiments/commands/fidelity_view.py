@@ -1,4 +1,4 @@
-"""The printed table and the plot of `hexjax fidelity` (`hexjax.experiments.fidelity`)."""
+"""The printed table and the plot of `hexjax fidelity` (`hexjax.experiments.commands.fidelity`)."""
 
 from __future__ import annotations
 

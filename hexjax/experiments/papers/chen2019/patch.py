@@ -13,9 +13,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from hexjax.control.gait import GaitParams
-from hexjax.control.perceive_support import PerceivingSupportPlan
 from hexjax.control.registry import make_controller
-from hexjax.control.support_gait import SupportPlanController
 from hexjax.perceive.grid import dem_grid
 from hexjax.sim.config import RolloutConfig
 from hexjax.sim.engines import RANGE_SENSORS, TRACES
@@ -84,15 +82,15 @@ def run_chen2019(n: int = 16, seed: int = 0, robot: str = "chen2019", duration: 
     k_t, k_r = jax.random.split(jax.random.PRNGKey(seed))
     terrain = sample(spec, k_t, n)
     cfg = RolloutConfig(record=True)
-    planned = SupportPlanController(rb)
+    planned = make_controller("support", rb)
     pp = planned.default_params(stride=stride, phase_time=phase_time)
     tile = lambda x: jnp.broadcast_to(x, (n,) + jnp.shape(x))
     true_dem = dem_for(spec, terrain)
     pp = jax.tree_util.tree_map(tile, pp.replace(dem=None)).replace(dem=true_dem)
     variants = [("planned", planned, pp, True)]
     if sensor is not None:
-        variants.append(("perceived", PerceivingSupportPlan(rb, sensor=sensor, grid=dem_grid(spec),
-                                                            perceive_every=perceive_every), pp, True))
+        variants.append(("perceived", make_controller("perceive-support", rb, sensor=sensor, grid=dem_grid(spec),
+                                                      perceive_every=perceive_every), pp, True))
     for h in fixed_step_heights:
         # the Luneckas 2020 tripod moves the torso l per swing slot: the same advance per phase as `stride`
         fp = GaitParams(step_length=jnp.float32(stride), step_height=jnp.float32(h),

@@ -1,7 +1,7 @@
 """Perception in the loop (Zhao 2018 Sect. 5, Fig. 15): the avoidance planner steering the MJX robot from the
 obstacles its range sensor finds (`PerceivingAvoidGait`: scan -> 2.5D grid map -> RANSAC ground -> obstacle
 circles), against the same planner handed the true circles (privileged) and told of none (blind), over the
-same random fields (`hexjax.experiments.zhao2018.closed_loop`, whose runner each mode goes through).
+same random fields (`hexjax.experiments.papers.zhao2018.closed_loop`, whose runner each mode goes through).
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from tqdm.auto import tqdm
 from hexjax.sim.engines import RANGE_SENSORS, TRACES
 from hexjax.control.perceive_gait import PerceivingAvoidGait, map_bounds
 from hexjax.control.registry import make_controller
-from hexjax.experiments.zhao2018.closed_loop import field_setup, run_closed_loop, seeded_fields
+from hexjax.experiments.papers.zhao2018.closed_loop import field_setup, run_closed_loop, seeded_fields
 from hexjax.perceive.grid import GridMap, GridSpec
 from hexjax.perceive.sensors import get_sensor
 from hexjax.plan.avoid import AvoidConfig

@@ -27,9 +27,9 @@ from typing import Dict, Sequence
 import jax
 import numpy as np
 
-from hexjax.experiments.luneckas2020 import error_model as em
-from hexjax.experiments.luneckas2020.dataset import concat_datasets, save_dataset, sequences_from_runs
-from hexjax.experiments.luneckas2020.walks import (DISTANCES, GAITS, METHODS, STRIKE_GAP, STUCK_RATIO, STUCK_WINDOW,
+from hexjax.experiments.papers.luneckas2020 import error_model as em
+from hexjax.experiments.papers.luneckas2020.dataset import concat_datasets, save_dataset, sequences_from_runs
+from hexjax.experiments.papers.luneckas2020.walks import (DISTANCES, GAITS, METHODS, STRIKE_GAP, STUCK_RATIO, STUCK_WINDOW,
                                                    errors_from, readout_index, robot_width, simulate_gait,
                                                    torso_strikes)
 from hexjax.experiments.runner import read_partial, write_partial

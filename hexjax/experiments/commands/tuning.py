@@ -44,6 +44,9 @@ def _row(r) -> Dict:
 
 
 def run(o, entry) -> Dict:
+    if o.equal_wall and o.method == "es":
+        raise ValueError("--equal-wall with --method es: it gives the evolution strategy the gradient run's wall "
+                         "time, so it needs --method grad or both")
     cfg = load_tune_config(o.config, parse_sets(o.set), merge=True)
     # the tuners (MJX, the rollout) load only once the config has passed its checks: a bad --set answers in
     # about a second

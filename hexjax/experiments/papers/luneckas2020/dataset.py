@@ -15,8 +15,8 @@ from typing import Dict, Sequence
 
 import numpy as np
 
-from hexjax.experiments.luneckas2020 import error_model as em
-from hexjax.experiments.luneckas2020.walks import errors_from, readout_index, robot_width, simulate_gait
+from hexjax.experiments.papers.luneckas2020 import error_model as em
+from hexjax.experiments.papers.luneckas2020.walks import errors_from, readout_index, robot_width, simulate_gait
 from hexjax.sim.engines import TRACES
 from hexjax.world.presets import get_robot
 
