@@ -134,8 +134,8 @@ def load_checkpoint(path: str, like, digest: str):
     return jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(like), leaves), meta["step"], meta["log"]
 
 
-def drive(problem: Problem, out_dir: str, method: str, digest: str, state, params_of, advance, n_steps: int,
-           rollouts_per_step: int, should_eval, resume: bool, progress: bool, time_limit, t_start: float):
+def drive(problem: Problem, out_dir: str, *, method: str, digest: str, state, params_of, advance, n_steps: int,
+          rollouts_per_step: int, should_eval, resume: bool, progress: bool, time_limit, t_start: float):
     """The loop both methods share: resume from out_dir/checkpoint.npz, evaluate the start, then `advance`
     (state, step) -> (state, log fields) up to `n_steps` times or until `time_limit`, evaluating where
     `should_eval(step)` and at the end, checkpointing after every step. `params_of(state)` gives the

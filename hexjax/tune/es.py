@@ -97,5 +97,7 @@ def tune_es(cfg: TuneConfig, out_dir: str, rollouts: int, resume: bool = True, p
     # evaluate whenever the rollouts used cross a multiple of the gradient run's evaluation period
     should_eval = lambda gen: (gen * pop) // cfg.eval_every > ((gen - 1) * pop) // cfg.eval_every
     label = f"{name.replace('_', '-')} (pop {pop})"
-    return drive(problem, out_dir, label, digest, es.init(key, u0, es_params), es.get_mean,
-                  advance, max(1, rollouts // (pop * B)), pop * B, should_eval, resume, progress, time_limit, t_start)
+    return drive(problem, out_dir, method=label, digest=digest, state=es.init(key, u0, es_params),
+                 params_of=es.get_mean, advance=advance, n_steps=max(1, rollouts // (pop * B)),
+                 rollouts_per_step=pop * B, should_eval=should_eval, resume=resume, progress=progress,
+                 time_limit=time_limit, t_start=t_start)
