@@ -112,6 +112,6 @@ def test_a_finished_run_leaves_no_partial_file(tmp_path, monkeypatch, capsys):
             return "done"
 
     monkeypatch.setattr(runner.importlib, "import_module", lambda name: Mod)
-    entry = type("E", (), {"options": (), "entry": "x"})()
+    entry = type("E", (), {"options": (), "entry": "x", "physics_by": ""})()
     runner.run(entry, type("O", (), {"json": path, "png": ""})())
     assert json.load(open(path))["cells"] == done and not os.path.exists(path + ".partial.json")
