@@ -21,8 +21,9 @@ def _options(**kw):
 
 def _run_in_own_process(options, preset, path, env):
     """`fidelity.run(options, preset)`'s result, run in a child process with environment `env`."""
-    code = ("import json, sys, types\nfrom hexjax.experiments.commands import fidelity\nfrom hexjax.experiments.runner import "
-            "write_json\nres = fidelity.run(types.SimpleNamespace(**json.loads(sys.argv[1])), "
+    code = ("import json, sys, types\nfrom hexjax.experiments.commands import fidelity\n"
+            "from hexjax.experiments.runner import write_json\n"
+            "res = fidelity.run(types.SimpleNamespace(**json.loads(sys.argv[1])), "
             "types.SimpleNamespace(preset=json.loads(sys.argv[2])))\nwrite_json(sys.argv[3], res)\n")
     r = subprocess.run([sys.executable, "-c", code, json.dumps(options), json.dumps(preset), str(path)], env=env,
                        capture_output=True, text=True, timeout=3000)

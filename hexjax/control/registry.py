@@ -44,7 +44,7 @@ class ControllerEntry:
     over several terrain families in one rollout (None: its defaults); walks_alone: it walks from its default
     params on any terrain (render); blind: the controller it is without its range sensor (the cost of perception
     is measured against it). A reflex entry's tuning fields are its base's (the tuner lays the layer over the base's
-hand-ruled controller)."""
+    hand-ruled controller)."""
 
     make: Callable[..., "Controller"]
     robot: str

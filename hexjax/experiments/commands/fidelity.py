@@ -34,7 +34,8 @@ from typing import Dict, List, Optional
 
 import numpy as np
 
-from hexjax.experiments.commands.fidelity_view import CONTRACT, plot, report  # noqa: F401 (plot, report: the registry's)
+# plot and report are the registry's (this module is the entry)
+from hexjax.experiments.commands.fidelity_view import CONTRACT, plot, report  # noqa: F401
 from hexjax.sim.metrics import paired
 from hexjax.experiments.runner import keep_piece, read_kept, read_partial, write_partial
 

@@ -24,7 +24,8 @@ import numpy as np
 from hexjax import cache
 from hexjax.control.registry import CONTROLLERS
 from hexjax.experiments.runner import read_partial, write_partial
-from hexjax.experiments.commands.robustness_view import ENVELOPE_SUCCESS, plot, report  # noqa: F401 (plot, report: the registry's)
+# plot and report are the registry's (this module is the entry)
+from hexjax.experiments.commands.robustness_view import ENVELOPE_SUCCESS, plot, report  # noqa: F401
 from hexjax.world.files import read_yaml
 from hexjax.world.randomization import AXES as RANDOM_AXES
 from hexjax.world.randomization import randomization_from_dict

@@ -29,9 +29,9 @@ import numpy as np
 
 from hexjax.experiments.papers.luneckas2020 import error_model as em
 from hexjax.experiments.papers.luneckas2020.dataset import concat_datasets, save_dataset, sequences_from_runs
-from hexjax.experiments.papers.luneckas2020.walks import (DISTANCES, GAITS, METHODS, STRIKE_GAP, STUCK_RATIO, STUCK_WINDOW,
-                                                   errors_from, readout_index, robot_width, simulate_gait,
-                                                   torso_strikes)
+from hexjax.experiments.papers.luneckas2020.walks import (DISTANCES, GAITS, METHODS, STRIKE_GAP, STUCK_RATIO,
+                                                          STUCK_WINDOW, errors_from, readout_index, robot_width,
+                                                          simulate_gait, torso_strikes)
 from hexjax.experiments.runner import read_partial, write_partial
 from hexjax.sim.metrics import error_stats
 from hexjax.sim.engines import TRACES
