@@ -53,9 +53,9 @@ def option_xml(physics: PhysicsConfig, gravity=None) -> str:
             f'cone="{physics.cone}" integrator="{integ}"{g}><flag eulerdamp="disable"/></option>')
 
 
-def _legs(spec: RobotSpec, bits) -> list:
-    """Each leg's bodies: coxa, femur and tibia capsules, the tibia's pad and foot, the foot's site."""
-    leg_mass = spec.total_mass * spec.leg_mass_fraction / N_LEGS
+def _legs(spec: RobotSpec, bits, leg_mass: float) -> list:
+    """Each leg's bodies: coxa, femur and tibia capsules, the tibia's pad and foot (their masses shares of
+    `leg_mass`), the foot's site."""
     hips, yaws, fsign = hip_positions(spec), mount_yaws(spec), forward_sign()
     lc, lf, lt = spec.coxa_length, spec.femur_length, spec.tibia_length
     legs = []
@@ -168,7 +168,7 @@ def build_mjcf(spec: RobotSpec, physics: PhysicsConfig, *, contact_sensors: bool
     q0 = neutral_joint_angles(spec)
     z0 = spec.hip_height + 0.003
 
-    legs = _legs(spec, bits)
+    legs = _legs(spec, bits, leg_mass)
 
     slots = _slots(physics, terrain_boxes)
     sensors = _sensors() if contact_sensors else []

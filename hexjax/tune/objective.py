@@ -289,13 +289,13 @@ def _controller(cfg: TuneConfig, robot, smooth: bool):
 
 
 def _hand_rules(cfg: TuneConfig, robot, smooth: bool):
-    base = CONTROLLERS[cfg.controller].base
+    entry = CONTROLLERS[cfg.controller]
+    base = entry.base
     if base is not None:  # a learned reflex layer over the base's hand-ruled controller, untrained
         c, p, dur = _hand_rules(dataclasses.replace(cfg, controller=base, params={}), robot, smooth)
         layer = ReflexController(c)
         return layer, ReflexParams(base=p, net=layer.init_net()), dur
     st = smooth and cfg.gates == "straight_through"
-    entry = CONTROLLERS[cfg.controller]
     c = make_controller(cfg.controller, robot, gait=cfg.gait, smooth=smooth, straight_through=st,
                         **{f: getattr(cfg, f) for f in entry.tune_fields})
     dur = cfg.horizon

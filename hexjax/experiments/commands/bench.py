@@ -94,8 +94,9 @@ def bench(robot: str = "luneckas2020", batches: Sequence[int] = (16, 64, 256), s
     rows = []
     jobs = [(t, b, c, be, pn) for pn in presets for be in engines for t in terrains for b in batches for c in ctrls]
     for tname, b, cname, be, pname in tqdm(jobs, desc="bench", disable=not progress):
-        rows.append(_time_row(spec, ctrls[cname], tname, b, cname, be, pname, presets[pname], steps[pname],
-                              sim_seconds, cfg, repeats, nthread, mesh, profile, progress))
+        rows.append(_time_row(spec, ctrls[cname], tname=tname, b=b, cname=cname, be=be, pname=pname,
+                              preset=presets[pname], n_phys=steps[pname], sim_seconds=sim_seconds, cfg=cfg,
+                              repeats=repeats, nthread=nthread, mesh=mesh, profile=profile, progress=progress))
         if progress:
             tqdm.write(f"{pname} {be} {tname} B={b} {cname}: compile {rows[-1]['compile_s']:.1f} s, "
                        f"{rows[-1]['env_steps_per_s']:.0f} env-steps/s, "
@@ -135,10 +136,11 @@ def format_bench(res: Dict) -> str:
             lines.append(f"{r.get('engine')} B={r['batch']}: " + overflow_line(r["overflow"]))
     for r in res["rows"]:
         if "rays_per_s_per_env" in r:
-            cost = f", perception costs {100 * r['perception_overhead']:+.1f} % against avoid" \
+            cost = f", perception costs {100 * r['perception_overhead']:+.1f} % against " \
+                f"{CONTROLLERS[r['controller']].blind}" \
                 if "perception_overhead" in r else ""
-            lines.append(f"perceive {r['terrain']} B={r['batch']}: {r['rays_per_s_per_env']:,.0f} rays/s per env in the "
-                         f"loop{cost}")
+            lines.append(f"{r['controller']} {r['terrain']} B={r['batch']}: {r['rays_per_s_per_env']:,.0f} rays/s "
+                         f"per env in the loop{cost}")
     return "\n".join(lines)
 
 
@@ -198,7 +200,7 @@ def _checked(batches, controller: str, engine: str, devices: int, repeats, profi
     return names, engines, make_mesh(jax.devices()[:devices]) if devices > 1 else None
 
 
-def _time_row(spec, ctrl, tname: str, b: int, cname: str, be: str, pname: str, preset, n_phys: int,
+def _time_row(spec, ctrl, *, tname: str, b: int, cname: str, be: str, pname: str, preset, n_phys: int,
               sim_seconds: float, cfg, repeats: int, nthread: int, mesh, profile: str, progress: bool) -> Dict:
     """One row of `bench`: controller `cname` on terrain `tname` at batch b, engine be, physics preset `pname`."""
     params = ctrl.default_params()

@@ -216,8 +216,8 @@ def sweep(o) -> Dict:
         bar.set_postfix_str(f"{cname} " + ", ".join(f"{n}={v:g}" for (n, _), v in zip(axes, cells[i])))
         if tag in skip:
             continue
-        stats = _walk_cell(o, cname, plan[cname], t_specs[i], r_specs[i], jax.random.fold_in(key, i), n_box,
-                           physics, mesh, engine)
+        stats = _walk_cell(o, cname, plan[cname], t_spec=t_specs[i], r_spec=r_specs[i],
+                           key=jax.random.fold_in(key, i), n_box=n_box, physics=physics, mesh=mesh, engine=engine)
         compile_s[cname] += stats["compile_s"]
         done[tag] = stats
         if partial and lead:
@@ -281,7 +281,7 @@ def _devices(batch: int, engine):
     return n_dev, make_mesh(jax.devices()[:n_dev]) if n_dev > 1 else None
 
 
-def _walk_cell(o, cname: str, planned, t_spec, r_spec, key, n_box: int, physics, mesh, engine) -> Dict:
+def _walk_cell(o, cname: str, planned, *, t_spec, r_spec, key, n_box: int, physics, mesh, engine) -> Dict:
     """One cell's walks for controller `cname` ((controller, robot, seconds) in `planned`): its statistics."""
     import jax
 
