@@ -132,18 +132,33 @@ def test_the_evolution_strategy_rolls_out_on_the_certified_engine():
     from hexjax.sim.rollout import rollout
     from hexjax.tune.config import load_tune_config
     from hexjax.tune.es import population_objective
-    from hexjax.tune.objective import Problem, per_env_objective
+    from hexjax.tune.objective import Problem, evaluate_held_out, per_env_objective
     cfg = load_tune_config("cpg_step_ditch", {"es_rollouts": "certified", "horizon": 2.0, "train_batch": 5})
     problem = Problem.build(cfg)
     u0 = problem.space.init(problem.params0)
     moved = dict(u0, clearance=u0["clearance"] + 2.0)
-    pop_u = jax.tree_util.tree_map(lambda a, b: jnp.stack([a, b]), u0, moved)
+    # within each field's bounds, but the elevated swing (Yu 2019's elevator) below the plain one: the CPG's own
+    # check refuses it, so the member scores the worst (+inf) instead of stopping the generation
+    outside = dict(u0, clearance=u0["clearance"] + 6.0, elevated_clearance=u0["elevated_clearance"] - 6.0)
+    pop_u = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), u0, moved, outside)
     terr, keys = problem.train_batch(0)
-    scores = np.asarray(population_objective(problem, 2, 5)(pop_u, terr, keys))
+    scores = np.asarray(population_objective(problem, 3, 5)(pop_u, terr, keys))
     phys = pick(cfg.eval_physics)
     alone = rollout(problem.robot, terr, problem.eval_ctrl, problem.space.apply(moved, problem.eval_params0),
                     problem.duration, keys, physics=shared_config(phys, problem.specs), engine=phys.engine.name)
-    assert phys.engine.name == "c" and scores[0] != scores[1]
+    assert phys.engine.name == "c" and scores[0] != scores[1] and np.isfinite(scores[:2]).all()
     assert scores[1] == pytest.approx(float(np.mean(per_env_objective(alone, cfg.distance, cfg.objective))), abs=1e-6)
+    assert scores[2] == np.inf
+    # judged on the certified engine too (`eval_engine: certified`): the same rollout, and the iterate out of the
+    # controller's domain the worst, with the reason
+    judge = Problem.build(dataclasses.replace(cfg, eval_engine="certified", held_out_batch=5))
+    held = evaluate_held_out(judge, moved)
+    terr, keys = judge.eval_batch()
+    s = judge.certified_rollout(judge.space.apply(moved, judge.eval_params0), terr, keys)
+    assert held["objective"] == pytest.approx(float(np.mean(per_env_objective(s, cfg.distance, cfg.objective))),
+                                              abs=1e-6)
+    assert len(held["per_env_objective"]) == 5 and held["objective_se"] > 0
+    bad = evaluate_held_out(judge, outside)
+    assert bad["objective"] == np.inf and bad["infeasible"].startswith("cpg.elevated_clearance=")
     with pytest.raises(ValueError, match=r"tune.es_rollouts='certified' runs the evaluated \(hard\) rollout"):
         dataclasses.replace(cfg, es_objective="smooth").validate()

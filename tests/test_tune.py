@@ -330,3 +330,33 @@ def test_a_tuning_starts_from_a_params_preset_and_tunes_each_leg():
     assert config_digest(cfg, "grad") != config_digest(dataclasses.replace(cfg, start=None), "grad")
     with pytest.raises(ValueError, match="tune.start='nope'"):
         load_tune_config("cpg_legs", overrides={"start": "nope"})
+
+
+def test_an_equal_wall_race_reads_its_ratio_and_paired_errors_from_the_logs():
+    """`hexjax tune --equal-wall`: the strategy is evaluated at the first generation past each of the gradient
+    run's evaluation times, and the race says how far the gradient's pick is from the start's and the strategy's
+    on the same terrains (paired), and when the gradient first reached the strategy's J, as a fraction of the
+    strategy's own seconds. Worked by hand on three terrains."""
+    from hexjax.experiments.commands.tuning import race
+    from hexjax.tune.es import eval_schedule
+    due = eval_schedule(8, 4, eval_at=[10.0, 20.0])
+    assert [due(g, t) for g, t in enumerate([3.0, 9.9, 10.1, 12.0, 25.0, 26.0], 1)] == [False, False, True, False,
+                                                                                        True, False]
+    by_rollouts = eval_schedule(8, 16)  # one evaluation every 2 generations of 8 members = 16 gradient steps
+    assert [by_rollouts(g, 0.0) for g in range(1, 5)] == [False, True, False, True]
+
+    def ev(j, t):
+        return {"train_s": t, "wall_s": t, "held_out": {"objective": float(np.mean(j)), "per_env_objective": j}}
+    start = [0.3, 0.2, 0.4]
+    grad_log = [ev(start, 1.0), ev([0.2, 0.2, 0.3], 50.0), ev([0.1, 0.15, 0.2], 100.0)]
+    es_log = [ev(start, 1.0), ev([0.2, 0.1, 0.25], 100.0)]
+    run = lambda log, pick: {"method": "m", "log": log, "start": log[0], "final": log[pick]}
+    r = race([run(grad_log, 2), run(es_log, 1)])
+    d = np.array([0.1, 0.15, 0.2]) - np.array(start)
+    assert r["grad_less_start"]["mean"] == pytest.approx(d.mean())
+    assert r["grad_less_start"]["se"] == pytest.approx(d.std(ddof=1) / np.sqrt(3))
+    a, = r["against"]
+    assert a["grad_s_to_reach"] == 100.0 and a["ratio"] == pytest.approx(1.0)  # 0.233 > 0.183 at 50 s
+    assert a["grad_less_es"]["mean"] == pytest.approx(np.mean([-0.1, 0.05, -0.05]))
+    assert race([run(grad_log, 2), run([ev(start, 1.0), ev([0.5, 0.5, 0.5], 80.0)], 1)])["against"][0]["ratio"] == \
+        pytest.approx(1.0 / 80.0)

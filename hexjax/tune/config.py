@@ -100,6 +100,10 @@ class TuneConfig:
     # population) or 'certified' (the hard form on `eval_physics` on the fastest engine certified for it on this
     # host: MuJoCo Warp on a GPU, MuJoCo C on a CPU; needs es_objective: hard)
     es_rollouts: str = "training"
+    # where the held-out and validation evaluations run: 'mjx' (a kept MJX program on `eval_physics`) or
+    # 'certified' (the fastest engine certified for `eval_physics` on this host: MuJoCo Warp on a GPU, MuJoCo C
+    # on a CPU; what every other command judges on)
+    eval_engine: str = "mjx"
 
     @property
     def terrains(self) -> Tuple[str, ...]:
@@ -187,6 +191,8 @@ class TuneConfig:
         if get_engine(get_physics(self.eval_physics).engine).lacks({GRADIENTS}):
             raise ValueError(f"tune.eval_physics={self.eval_physics!r}: the evaluation is a kept program of the "
                              "gradient's engine; give a preset on mjx (validated, fast or a .yaml of one's own)")
+        if self.eval_engine not in ("mjx", "certified"):
+            raise ValueError(f"tune.eval_engine={self.eval_engine!r}: use 'mjx' or 'certified'")
         if self.solver_grad not in GRAD_SOLVERS:
             raise ValueError(f"tune.solver_grad={self.solver_grad!r}: use one of {GRAD_SOLVERS}")
         if not isinstance(self.unroll_substeps, bool):

@@ -79,6 +79,8 @@ def config_digest(cfg: TuneConfig, method: str, also_drop: tuple = ()) -> str:
         drop.append("es_strategy")
     if method == "grad" or cfg.es_rollouts == "training":  # likewise
         drop.append("es_rollouts")
+    if cfg.eval_engine == "mjx":  # likewise
+        drop.append("eval_engine")
     for k in drop:
         d.pop(k)
     for k in also_drop:
@@ -90,7 +92,8 @@ def config_digest(cfg: TuneConfig, method: str, also_drop: tuple = ()) -> str:
 # the terrains and keys, which the program takes as arguments), the held-out and validation batches (the
 # evaluation rollout, on `eval_physics`, is a program of its own) and the optimiser and CMA-ES's step size
 # (applied outside it)
-_OUTSIDE_PROGRAM = ("seed", "held_out_batch", "validation_batch", "eval_physics", "optimizer", "es_sigma")
+_OUTSIDE_PROGRAM = ("seed", "held_out_batch", "validation_batch", "eval_physics", "eval_engine", "optimizer",
+                    "es_sigma")
 
 
 def program_digest(cfg: TuneConfig, method: str) -> str:
@@ -138,7 +141,7 @@ def drive(problem: Problem, out_dir: str, *, method: str, digest: str, state, pa
           rollouts_per_step: int, should_eval, resume: bool, progress: bool, time_limit, t_start: float):
     """The loop both methods share: resume from out_dir/checkpoint.npz, evaluate the start, then `advance`
     (state, step) -> (state, log fields) up to `n_steps` times or until `time_limit`, evaluating where
-    `should_eval(step)` and at the end, checkpointing after every step. `params_of(state)` gives the
+    `should_eval(step, train_s)` (the method's own seconds so far) and at the end, checkpointing after every step. `params_of(state)` gives the
     unconstrained params to evaluate."""
     ckpt = os.path.join(out_dir, "checkpoint.npz")
     step, log = 0, []
@@ -175,7 +178,7 @@ def drive(problem: Problem, out_dir: str, *, method: str, digest: str, state, pa
         u = params_of(state)
         entry = {"step": step, "rollouts": step * rollouts_per_step, **fields,
                  "params": _jsonable(problem.space.physical(u))}
-        if should_eval(step) or step == n_steps:
+        if should_eval(step, times()["train_s"]) or step == n_steps:
             entry.update(evaluate(u))
         entry.update(times())
         log.append(entry)
@@ -288,16 +291,20 @@ def plot_log(res: Dict[str, Any], path: str) -> None:
 
 
 def compare_plot(rows, path: str) -> None:
-    """Held-out objective against rollouts used, one line per method (rows: `hexjax.experiments.commands.tuning`)."""
+    """Held-out objective against rollouts used and against the method's own seconds (evaluations left out, with
+    one standard error where the log has it), one line per method (rows: `hexjax.experiments.commands.tuning`)."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    fig, ax = plt.subplots(figsize=(6, 3.6))
+    fig, (ax, bx) = plt.subplots(1, 2, figsize=(10, 3.8), sharey=True)
     for r in rows:
-        ax.plot(*zip(*r["curve"]), "o-", label=r["method"])
+        line, = ax.plot(*zip(*r["curve"]), "o-", label=r["method"])
+        t, j, se = zip(*r["curve_s"])
+        bx.errorbar(t, j, yerr=[np.nan if e is None else e for e in se], fmt="o-", color=line.get_color(), capsize=2)
     ax.set_xscale("symlog", linthresh=8)
     ax.set_xlabel("rollouts used")
     ax.set_ylabel("held-out objective J (m, hard mode)")
+    bx.set_xlabel("seconds of the method's own time (compile included)")
     ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=110)

@@ -5,7 +5,7 @@ few numbers, sep-CMA-ES (a diagonal covariance) or SNES where a full covariance 
 from __future__ import annotations
 
 import time
-from typing import Any, Dict, Optional
+from typing import Any, Dict, Optional, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -43,15 +43,30 @@ def population_objective(problem: Problem, pop: int, batch: int):
         return jax.tree_util.tree_map(lambda x: jnp.repeat(x, batch, axis=0), flat_p)
 
     if cfg.es_rollouts == "certified":
-        from hexjax.sim.physics import pick, shared_config
-        from hexjax.sim.rollout import rollout
-        phys = pick(cfg.eval_physics)
-        config = shared_config(phys, problem.specs)
+        # the certified engines check every member's params on the host as a user's would be (e.g. the CPG's
+        # elevated clearance >= its clearance, which the space's per-field bounds do not keep): a member that
+        # fails walks as the start does and scores +inf, the worst of its generation (a death penalty)
+        u_start = problem.space.init(start)
+
+        def feasible(pop_u):
+            flat_p = jax.vmap(lambda uu: problem.space.apply(uu, start))(pop_u)
+            ok = []
+            for i in range(pop):
+                try:
+                    problem.eval_ctrl.validate_params(jax.tree_util.tree_map(lambda x: x[i], flat_p))
+                    ok.append(True)
+                except ValueError:
+                    ok.append(False)
+            return jnp.asarray(ok)
 
         def certified(pop_u, terr, keys):
-            s = rollout(problem.robot, jax.tree_util.tree_map(tile, terr), problem.eval_ctrl, member_params(pop_u),
-                        problem.duration, tile(keys), physics=config, engine=phys.engine.name, params_batched=True)
-            return per_env_objective(s, cfg.distance, cfg.objective).reshape(pop, batch).mean(1)
+            ok = feasible(pop_u)
+            pop_u = jax.tree_util.tree_map(
+                lambda x, x0: jnp.where(ok.reshape((pop,) + (1,) * (x.ndim - 1)), x, x0), pop_u, u_start)
+            s = problem.certified_rollout(member_params(pop_u), jax.tree_util.tree_map(tile, terr), tile(keys),
+                                          params_batched=True)
+            fit = per_env_objective(s, cfg.distance, cfg.objective).reshape(pop, batch).mean(1)
+            return jnp.where(ok, fit, jnp.inf)
         return certified
 
     model, fn = (problem.hard_rollout(params_batched=True) if hard else
@@ -65,14 +80,32 @@ def population_objective(problem: Problem, pop: int, batch: int):
     return cached(program + "/pop", lambda: jax.jit(population_loss), problem.static("es/pop", program))
 
 
+def eval_schedule(pop: int, eval_every: int, eval_at: Optional[Sequence[float]] = None):
+    """should_eval(generation, train_s) of `tune_es`: where the rollouts used cross a multiple of the gradient
+    run's evaluation period (`eval_every` steps of the same batch: every eval_every / pop generations), or with
+    `eval_at` at the first generation whose own seconds pass each mark (a resumed run may evaluate once early)."""
+    if eval_at is None:
+        return lambda gen, _: (gen * pop) // eval_every > ((gen - 1) * pop) // eval_every
+    marks = sorted(eval_at)
+    passed = {"n": 0}
+
+    def should_eval(gen, train_s):
+        n = sum(1 for m in marks if m <= train_s)
+        due, passed["n"] = n > passed["n"], n
+        return due
+    return should_eval
+
+
 def tune_es(cfg: TuneConfig, out_dir: str, rollouts: int, resume: bool = True, progress: bool = True,
-            time_limit: Optional[float] = None) -> Dict[str, Any]:
+            time_limit: Optional[float] = None, eval_at: Optional[Sequence[float]] = None) -> Dict[str, Any]:
     """The evosax strategy of `strategy(cfg)` (CMA-ES, sep-CMA-ES or SNES) on the same unconstrained params and
     the same smooth training objective (or, with `es_objective: hard`, the hard form that evaluation uses: an ES
     needs no gradient; `es_rollouts`: where it runs, `population_objective`), with the same terrain stream:
     generation k evaluates every member of its population on the `train_batch` terrains of step k. It stops after `rollouts` rollouts (population x train_batch per generation), so it
     can be given exactly the gradient run's budget. Its starting mean is the hand rules; its step size is
-    `cfg.es_sigma` on the unconstrained scale. Held-out evaluations of the mean as for `tune`."""
+    `cfg.es_sigma` on the unconstrained scale. Held-out evaluations of the mean as for `tune`: where the rollouts
+    used cross a multiple of the gradient run's evaluation period, or with `eval_at` (seconds of the method's own
+    time: a wall-time race's marks) at the first generation past each mark."""
     t_start = time.perf_counter()
     problem = Problem.build(cfg)
     u0 = problem.space.init(problem.params0)
@@ -95,7 +128,7 @@ def tune_es(cfg: TuneConfig, out_dir: str, rollouts: int, resume: bool = True, p
         return state, {"train_objective": float(jnp.mean(fit)), "best_in_generation": float(jnp.min(fit))}
 
     # evaluate whenever the rollouts used cross a multiple of the gradient run's evaluation period
-    should_eval = lambda gen: (gen * pop) // cfg.eval_every > ((gen - 1) * pop) // cfg.eval_every
+    should_eval = eval_schedule(pop, cfg.eval_every, eval_at)
     label = f"{name.replace('_', '-')} (pop {pop})"
     return drive(problem, out_dir, method=label, digest=digest, state=es.init(key, u0, es_params),
                  params_of=es.get_mean, advance=advance, n_steps=max(1, rollouts // (pop * B)),

@@ -145,9 +145,22 @@ class Problem:
                                 params_batched=params_batched)
 
     def eval_rollout(self):
-        """(model, fn) of the hard evaluation rollout on `eval_physics()`, compiled once per machine (a kept
-        program)."""
+        """(model, fn) of the hard evaluation rollout on `eval_physics()`: with `eval_engine: mjx` MJX's, compiled
+        once per machine (a kept program); with 'certified' the fastest certified engine's (`certified_rollout`,
+        model None)."""
+        if self.cfg.eval_engine == "certified":
+            return None, lambda model, params, terr, keys: self.certified_rollout(params, terr, keys)
         return rollout_function(self.robot, self.eval_ctrl, self.duration, physics=self.eval_physics(), kept=True)
+
+    def certified_rollout(self, params, terr, keys, params_batched: bool = False):
+        """The hard rollout of `params` (the eval form's, shared or batched over the envs) on `eval_physics`, on the
+        fastest engine certified for it on this host (`hexjax.sim.physics.pick`: MuJoCo Warp on a GPU, MuJoCo C
+        on a CPU): the evaluation every command judges by. Returns the `Summary`."""
+        from hexjax.sim.physics import pick, shared_config
+        from hexjax.sim.rollout import rollout
+        phys = pick(self.cfg.eval_physics)  # the engine and the settings certified on it
+        return rollout(self.robot, terr, self.eval_ctrl, params, self.duration, keys,
+                       physics=shared_config(phys, self.specs), engine=phys.engine.name, params_batched=params_batched)
 
     def static(self, role: str, digest: str) -> tuple:
         """What a tuner's compiled function is made from, to key its kept program (`hexjax.sim.compiled`): the
@@ -317,13 +330,24 @@ def evaluate_held_out(problem: Problem, u, fn=None, model=None, which: str = "he
     if fn is None:
         model, fn = problem.eval_rollout()
     terr, keys = problem.eval_batch(which)
-    s = fn(model, problem.space.apply(u, problem.eval_params0), terr, keys)
+    params = problem.space.apply(u, problem.eval_params0)
+    if problem.cfg.eval_engine == "certified":  # its engines check the params as a user's: an iterate out of the
+        try:  # controller's domain (one the space's per-field bounds allow) is judged the worst, and says why
+            problem.eval_ctrl.validate_params(params)
+        except ValueError as err:
+            return {"objective": float("inf"), "objective_se": float("nan"), "goal_error_cm": float("nan"),
+                    "fall_pct": float("nan"), "infeasible": str(err).split(":")[0]}
+    s = fn(model, params, terr, keys)
     j = np.asarray(per_env_objective(s, problem.cfg.distance, problem.cfg.objective))
     dx, dy, da = (np.asarray(x) for x in travel_errors(s, problem.cfg.distance))
     fell = np.asarray(s.fell)
     d = problem.cfg.distance
     out = {"objective": float(j.mean()), **error_stats(dx, dy, da, d), "fall_pct": 100 * float(fell.mean()),
-           "nan_envs": int(np.asarray(s.nan).sum())}
+           "nan_envs": int(np.asarray(s.nan).sum()),
+           # its standard error, and each terrain's J: iterates of two runs of one config walk the same terrains,
+           # so their difference has a paired standard error (`hexjax.experiments.commands.tuning`)
+           "objective_se": float(j.std(ddof=1) / np.sqrt(j.size)) if j.size > 1 else float("nan"),
+           "per_env_objective": [round(float(x), 6) for x in j]}
     if len(problem.specs) > 1:  # the batch is split among the terrain families in blocks (`terrain_batch`)
         out["by_terrain"] = {name: {"n": int(sl.stop - sl.start), "objective": float(j[sl].mean()),
                                     "goal_error_cm": error_stats(dx[sl], dy[sl], da[sl], d)["goal_error_cm"],

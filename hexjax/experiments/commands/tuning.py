@@ -40,7 +40,42 @@ def _row(r) -> Dict:
             "improvement_pct": r["improvement_pct"], "params_start": r["start"]["params"],
             "params_final": r["final"]["params"],
             "skipped_steps": sum(1 for e in r["log"] if e.get("grad_finite") is False),
-            "curve": [(e["rollouts"], e["held_out"]["objective"]) for e in r["log"] if "held_out" in e]}
+            "curve": [(e["rollouts"], e["held_out"]["objective"]) for e in r["log"] if "held_out" in e],
+            # held-out J against the method's own seconds (evaluations left out), with its standard error
+            "curve_s": [(e.get("train_s", e["wall_s"]), e["held_out"]["objective"], e["held_out"].get("objective_se"))
+                        for e in r["log"] if "held_out" in e]}
+
+
+def _paired(a, b) -> Dict:
+    """Mean and standard error of the per-terrain difference a - b (the same held-out terrains and draws)."""
+    import numpy as np
+    d = np.asarray(a, float) - np.asarray(b, float)
+    return {"mean": float(d.mean()), "se": float(d.std(ddof=1) / np.sqrt(d.size))}
+
+
+def race(runs) -> Dict:
+    """The equal-wall race of a gradient run (the first) against the evolution strategies after it: the gradient's
+    held-out J less the start's and less each strategy's (paired over the held-out terrains), and the seconds the
+    gradient took to first reach each strategy's picked J, as a fraction of that strategy's own seconds (None
+    where it never did). Needs each evaluation's per-terrain J (logs written since they carry it)."""
+    def per_env(r, which):
+        return r[which]["held_out"].get("per_env_objective")
+
+    g = runs[0]
+    if per_env(g, "final") is None or per_env(g, "start") is None:
+        return {}
+    out = {"grad_less_start": _paired(per_env(g, "final"), per_env(g, "start")), "against": []}
+    curve = [(e.get("train_s", e["wall_s"]), e["held_out"]["objective"]) for e in g["log"] if "held_out" in e]
+    for r in runs[1:]:
+        if per_env(r, "final") is None:
+            continue
+        target = r["final"]["held_out"]["objective"]
+        own = r["log"][-1].get("train_s", r["log"][-1]["wall_s"])
+        reach = next((t for t, j in curve if j <= target), None)
+        out["against"].append({"method": r["method"], "es_train_s": own, "es_held_out": target,
+                               "grad_less_es": _paired(per_env(g, "final"), per_env(r, "final")),
+                               "grad_s_to_reach": reach, "ratio": None if reach is None else reach / own})
+    return out
 
 
 def run(o, entry) -> Dict:
@@ -73,12 +108,21 @@ def run(o, entry) -> Dict:
     if o.equal_wall and runs and runs[0]["method"] in ("grad", "hybrid"):
         last = runs[0]["log"][-1]
         wall = last.get("train_s", last["wall_s"])  # the gradient run's own time, evaluations left out
-        runs.append(tune_es(cfg, os.path.join(out, "es_wall"), rollouts=10 ** 9, resume=not o.restart, time_limit=wall))
+        # evaluated where the gradient run was, in its own seconds, so that the two curves meet at each mark
+        marks = [e.get("train_s", e["wall_s"]) for e in runs[0]["log"][1:] if "held_out" in e]
+        runs.append(tune_es(cfg, os.path.join(out, "es_wall"), rollouts=10 ** 9, resume=not o.restart, time_limit=wall,
+                            eval_at=marks))
         runs[-1]["method"] += ", same wall time"
     from hexjax.sim.engines import GRADIENTS
     from hexjax.sim.physics import pick
+    import jax
+    dev = jax.devices()[0]
     res = {"config": o.config, "out": out, "total_wall_s": time.perf_counter() - t0, "runs": [_row(r) for r in runs],
-           "physics": pick(cfg.eval_physics, needs={GRADIENTS}).record()}  # the tuner judges on MJX
+           # the judge: MJX's kept program, or the host's certified engine (`eval_engine`)
+           "physics": pick(cfg.eval_physics, needs=() if cfg.eval_engine == "certified" else {GRADIENTS}).record(),
+           "device": f"{dev.platform}:{getattr(dev, 'device_kind', '')}"}
+    if len(runs) > 1 and runs[0]["method"] in ("grad", "hybrid"):
+        res["race"] = race(runs)
     if len(runs) > 1:
         compare_plot(res["runs"], os.path.join(out, "compare.png"))
     return res
@@ -110,5 +154,15 @@ def report(res: Dict) -> str:
                          f"\"Non-finite steps\")")
         for k, v in r["params_final"].items():
             lines.append(f"  {k}: " + _change(r["params_start"][k], v))
+    rc = res.get("race") or {}
+    if rc:
+        d = rc["grad_less_start"]
+        lines.append(f"race: the gradient's held-out J less the start's {d['mean']:+.4f} +- {d['se']:.4f} m (paired SE)")
+        for a in rc["against"]:
+            d = a["grad_less_es"]
+            reach = ("never reached in its run" if a["ratio"] is None else
+                     f"reached in {a['grad_s_to_reach']:.0f} s, {a['ratio']:.2f}x of its {a['es_train_s']:.0f} s")
+            lines.append(f"  against {a['method']}: {d['mean']:+.4f} +- {d['se']:.4f} m; its J {a['es_held_out']:.4f} "
+                         f"{reach}")
     lines.append(f"logs, checkpoints and plots under {res['out']}/")
     return "\n".join(lines)
