@@ -120,6 +120,11 @@ def test_a_layer_preset_runs_the_yu2019_experiment_under_the_layer():
     paper, layer = run_experiment("yu2019-step", **kw), run_experiment("yu2019-step", params=preset, **kw)
     assert layer["config"]["params"] == {"net": "3,122 numbers (a learned reflex layer)"}
     assert layer["results"] == paper["results"]
+    # the shipped, tuned layer loads by name (as `--params cpg_reflex_es` does) and moves the walk
+    from hexjax.tune.space import load_values
+    tuned = run_experiment("yu2019-step", params=load_values("cpg_reflex_es"), **kw)
+    assert tuned["config"]["params"] == {"net": "3,122 numbers (a learned reflex layer)"}
+    assert tuned["results"] != paper["results"]
 
 
 def test_the_evolution_strategy_rolls_out_on_the_certified_engine():

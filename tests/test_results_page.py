@@ -391,6 +391,7 @@ ROWS = [
     ("| `tactile_tripod_grad` |", [3, 4], lambda: tuned("tune_tactile_grad_validated_cpu.json", False), []),
     ("| `cpg_step_ditch_es` |", [3, 4], lambda: tuned("tune_cpg_es_validated_gpu.json", True), []),
     ("| `cpg_step_ditch_grad` |", [3, 4], lambda: tuned("tune_h100_validated_cpg_sgd_cold_log.json", True), []),
+    ("| `cpg_reflex_es` |", [3, 4], lambda: tuned("tune_cpg_reflex_es_h100.json", True), []),
 ]
 
 
