@@ -167,3 +167,21 @@ def test_the_evolution_strategy_rolls_out_on_the_certified_engine():
     assert bad["objective"] == np.inf and bad["infeasible"].startswith("cpg.elevated_clearance=")
     with pytest.raises(ValueError, match=r"tune.es_rollouts='certified' runs the evaluated \(hard\) rollout"):
         dataclasses.replace(cfg, es_objective="smooth").validate()
+
+
+def test_the_gait_layer_tunes_from_the_papers_gait():
+    """`gait_reflex_grad`: the tuner lays the layer over the Luneckas 2020 open-loop gait (which has no gates, so
+    its training and judged forms are one gait), tunes the layer's 2,802 weights from zero, walks the config's
+    distance with the gait's stop, and refuses a smooth-gate temperature the gait does not have."""
+    from hexjax.control.gait import GaitController
+    from hexjax.tune.config import load_tune_config
+    from hexjax.tune.objective import Problem
+    problem = Problem.build(load_tune_config("gait_reflex_grad"))
+    assert problem.space.names == ("net",)
+    assert type(problem.train_ctrl.base) is type(problem.eval_ctrl.base) is GaitController
+    assert problem.train_ctrl.base.n_cycles is not None  # the walk stops at the goal
+    weights = jax.tree_util.tree_leaves(problem.params0.net)
+    assert sum(int(np.size(w)) for w in weights) == 2802
+    assert not any(np.any(np.asarray(w)) for w in weights[-2:])  # the last layer's bias and kernel: zero
+    with pytest.raises(ValueError, match=r"tune.temperature=0.1: the gait-reflex controller has no smooth gate"):
+        load_tune_config("gait_reflex_grad", {"temperature": 0.1})

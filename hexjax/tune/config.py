@@ -163,8 +163,12 @@ class TuneConfig:
                 load_values(self.start)
             except ValueError as err:
                 raise ValueError(f"tune.start={self.start!r}: {err}") from None
-        from hexjax.control.registry import CONTROLLERS
+        from hexjax.control.registry import CONTROLLERS, paper_controller
         gaits = CONTROLLERS[self.controller].gaits if self.controller in CONTROLLERS else None  # else: space()
+        paper = CONTROLLERS.get(paper_controller(self.controller))
+        if self.temperature is not None and paper is not None and paper.temperature is None:
+            raise ValueError(f"tune.temperature={self.temperature!r}: the {self.controller} controller has no smooth "
+                             "gate to set it on; leave it out")
         if gaits is not None and self.gait not in gaits:
             raise ValueError(f"tune.gait={self.gait!r}: the {self.controller} controller walks "
                              + " or ".join(map(repr, gaits)))

@@ -137,10 +137,12 @@ def load_checkpoint(path: str, like, digest: str):
     return jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(like), leaves), meta["step"], meta["log"]
 
 
-def drive(problem: Problem, out_dir: str, *, method: str, digest: str, state, params_of, advance, n_steps: int,
+def drive(problem: Problem, out_dir: str, *, method: str, digest: str, state, params_of, advance,
+          n_steps: Optional[int],
           rollouts_per_step: int, should_eval, resume: bool, progress: bool, time_limit, t_start: float):
     """The loop both methods share: resume from out_dir/checkpoint.npz, evaluate the start, then `advance`
-    (state, step) -> (state, log fields) up to `n_steps` times or until `time_limit`, evaluating where
+    (state, step) -> (state, log fields) up to `n_steps` times (None: until `time_limit` alone) or until
+    `time_limit`, evaluating where
     `should_eval(step, train_s)` (the method's own seconds so far) and at the end, checkpointing after every step. `params_of(state)` gives the
     unconstrained params to evaluate."""
     ckpt = os.path.join(out_dir, "checkpoint.npz")
@@ -169,7 +171,7 @@ def drive(problem: Problem, out_dir: str, *, method: str, digest: str, state, pa
         u = params_of(state)
         ev = evaluate(u)
         log.append({"step": 0, "rollouts": 0, **times(), **ev, "params": _jsonable(problem.space.physical(u))})
-    while step < n_steps:
+    while n_steps is None or step < n_steps:
         if time_limit is not None and times()["train_s"] > time_limit:
             print(f"time limit {time_limit:.0f} s reached at step {step}")
             break
@@ -183,7 +185,8 @@ def drive(problem: Problem, out_dir: str, *, method: str, digest: str, state, pa
         entry.update(times())
         log.append(entry)
         save_checkpoint(ckpt, state, step, log, digest)
-        keep(f"{method} step {step} of {n_steps} kept in {ckpt}; the same command resumes from it")
+        keep(f"{method} step {step}{'' if n_steps is None else f' of {n_steps}'} kept in {ckpt}; the same command "
+             "resumes from it")
         bar.set_postfix(train=f"{fields['train_objective']:.3f}", held=f"{_last_held(log):.3f}",
                         s=f"{entry['train_s']:.0f}")
         bar.update(1)

@@ -48,7 +48,7 @@ from hexjax.sim.metrics import error_stats, travel_errors
 from hexjax.sim.rollout import rollout_function
 from hexjax.sim.windows import windowed_value_and_grad
 from hexjax.tune.config import TuneConfig
-from hexjax.tune.space import ParamSpace, load_values, with_values
+from hexjax.tune.space import SPACES, ParamSpace, load_values, with_values
 from hexjax.world.presets import get_robot
 from hexjax.world.terrain import pad_terrain, sample
 
@@ -308,16 +308,18 @@ def _hand_rules(cfg: TuneConfig, robot, smooth: bool):
         c, p, dur = _hand_rules(dataclasses.replace(cfg, controller=base, params={}), robot, smooth)
         layer = ReflexController(c)
         return layer, ReflexParams(base=p, net=layer.init_net()), dur
-    st = smooth and cfg.gates == "straight_through"
-    c = make_controller(cfg.controller, robot, gait=cfg.gait, smooth=smooth, straight_through=st,
-                        **{f: getattr(cfg, f) for f in entry.tune_fields})
+    # a controller with gates (its entry names their temperature) has a smooth form; an open-loop gait has none
+    gates = {} if entry.temperature is None else dict(smooth=smooth, straight_through=smooth and
+                                                      cfg.gates == "straight_through")
+    c = make_controller(cfg.controller, robot, gait=cfg.gait, **gates, **{f: getattr(cfg, f) for f in entry.tune_fields})
     dur = cfg.horizon
     if entry.stops:  # a walk with a planned stop walks `distance`
         c, dur = c.for_distance(cfg.distance)
     p = c.default_params()
     if cfg.temperature is not None:
         p = p.replace(**{entry.temperature: jnp.float32(cfg.temperature)})
-    if entry.period is not None and entry.period in cfg.space().names:
+    tuned = cfg.space().names if cfg.controller in SPACES else ()  # a reflex layer's base may have no space
+    if entry.period is not None and entry.period in tuned:
         hi = dict(cfg.space().bounds)[entry.period].hi  # the rollout must cover the slowest walk the bounds allow
         dur = dur * hi / float(getattr(p, entry.period))
     return c, p, dur

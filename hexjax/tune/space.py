@@ -252,11 +252,14 @@ PER_LEG: Dict[str, Dict[str, Bound]] = {
 # names them (`base.lc_trim`, ...)
 SPACES["cpg-reflex"] = {"net": Free()}
 PER_LEG["cpg-reflex"] = {f"base.{k}": b for k, b in {**SPACES["cpg"], **PER_LEG["cpg"]}.items()}
+# and over the Luneckas 2020 open-loop gait: its weights, and the gait's basic step where a config names it
+SPACES["gait-reflex"] = {"net": Free()}
+PER_LEG["gait-reflex"] = {f"base.{k}": SPACES["tactile"][k] for k in ("step_length", "step_height", "swing_time")}
 
 
 def make_space(controller: str, overrides: Optional[Mapping[str, Mapping[str, float]]] = None,
                only: Optional[list] = None) -> ParamSpace:
-    """The preset space of `controller` ('tactile', 'cpg' or 'cpg-reflex'), restricted to `only` (field names) and with
+    """The preset space of `controller` (a key of `SPACES`), restricted to `only` (field names) and with
     bounds replaced from `overrides` ({field: {"min": lo, "max": hi}}, as in configs/tune/*.yaml). The per-leg
     fields (`PER_LEG`) join only when `only` names them."""
     if controller not in SPACES:

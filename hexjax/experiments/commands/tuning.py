@@ -110,7 +110,7 @@ def run(o, entry) -> Dict:
         wall = last.get("train_s", last["wall_s"])  # the gradient run's own time, evaluations left out
         # evaluated where the gradient run was, in its own seconds, so that the two curves meet at each mark
         marks = [e.get("train_s", e["wall_s"]) for e in runs[0]["log"][1:] if "held_out" in e]
-        runs.append(tune_es(cfg, os.path.join(out, "es_wall"), rollouts=10 ** 9, resume=not o.restart, time_limit=wall,
+        runs.append(tune_es(cfg, os.path.join(out, "es_wall"), rollouts=None, resume=not o.restart, time_limit=wall,
                             eval_at=marks))
         runs[-1]["method"] += ", same wall time"
     from hexjax.sim.engines import GRADIENTS
