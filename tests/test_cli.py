@@ -173,6 +173,29 @@ def test_the_first_hours_bad_inputs_are_one_line_before_any_work(capsys, tmp_pat
     assert not list(folder.iterdir())
 
 
+def test_inputs_once_answered_after_jax_loaded_are_answered_before():
+    """A wrong cell or controller for fidelity, a tuning config's unknown controller, an unknown params preset
+    and a robustness controller used to be refused only after JAX had loaded (11-24 s on a fresh machine); each is
+    now one line from the checks before it, in a process that never imports JAX."""
+    import subprocess
+    import sys
+    cases = [(["fidelity", "--only", "nosuchcell"], "--only nosuchcell: no cell of the matrix matches"),
+             (["fidelity", "--controllers", "nosuch"], "--controllers 'nosuch': use some of"),
+             (["tune", "--set", "controller=nosuch"], "controller='nosuch': use one of gait, tactile, cpg"),
+             (["experiment", "yu2019-step", "--params", "nosuch"], "params preset 'nosuch' unknown"),
+             (["robustness", "--axis", "friction=0.5", "--controllers", "nosuch"], "--controllers 'nosuch'")]
+    code = ("import sys\nfrom hexjax.cli import main\n"
+            f"for argv in {[c[0] for c in cases]!r}:\n"
+            "    assert main(argv) == 2, argv\n"
+            "    assert 'jax' not in sys.modules, argv\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    lines = out.stderr.strip().splitlines()
+    assert len(lines) == len(cases), lines
+    for line, (argv, said) in zip(lines, cases):
+        assert said in line, (argv, line)
+
+
 def test_out_of_memory_is_one_line_naming_the_sizes(capsys, monkeypatch):
     """XLA's allocation failure (`chen2019-incenter --polygons 100000000` asked for 42 GB) ends the command with
     one line; any other runtime error keeps its traceback."""
@@ -255,3 +278,13 @@ def test_terrain_png_shows_the_obstacles(tmp_path):
     assert on_map.mean() > 0.9  # the middle is map, not axes or text
     tops, ground = np.mean(level[on_map] > 0.6), np.mean(level[on_map] < 0.1)
     assert 0.01 < tops < 0.2 and ground > 0.6, (tops, ground)
+
+
+def test_the_long_silent_commands_show_their_walks_progress(capsys):
+    """chen2019 (and zhao2018-mjx, zhao2018-perception, which share the bar) used to be silent from "compiling" to
+    the table; each walk now shows a bar over its control steps."""
+    assert main(["experiment", "chen2019", "--batch", "1", "--duration", "0.5"]) == 0
+    err = capsys.readouterr().err
+    for name in ("planned", "fixed_h8cm", "fixed_h13cm"):
+        assert f"chen2019 {name}: 1 patches, 0.5 s" in err, err[-2000:]
+    assert "step/s" in err

@@ -122,8 +122,9 @@ def _option(source: str, name: str, spec) -> Option:
     if spec.get("type") not in (None, *TYPES):
         raise ValueError(f"{source}: options.{name}.type={spec['type']!r}: use one of {sorted(TYPES)}")
     pk = spec.get("preset")
-    if pk is not None and pk not in ("robots", "terrains", "tune", "sensors", "physics"):
-        raise ValueError(f"{source}: options.{name}.preset={pk!r}: use robots, terrains, tune, sensors or physics")
+    if pk is not None and pk not in ("robots", "terrains", "tune", "sensors", "physics", "params"):
+        raise ValueError(f"{source}: options.{name}.preset={pk!r}: use robots, terrains, tune, sensors, physics or "
+                         "params")
     out = spec.get("output")
     bounds = {k: spec[k] for k in BOUND_KEYS if spec.get(k) is not None}
     for k, b in bounds.items():

@@ -159,6 +159,8 @@ def run(entry: Entry, o: types.SimpleNamespace) -> Dict[str, Any]:
     check_options(entry, o)
     check_batch_memory(o)  # the generous estimate, before JAX loads; the chosen engine's figure below
     mod = importlib.import_module(entry.entry)
+    if hasattr(mod, "prepare"):  # checks that need no JAX and settings made before it loads
+        mod.prepare(o, entry)
     physics = None
     if entry.physics_by == "command" and isinstance(o.physics, list):  # bench times each preset on each engine
         from hexjax.sim.physics import get_physics, timed_settings
@@ -169,8 +171,6 @@ def run(entry: Entry, o: types.SimpleNamespace) -> Dict[str, Any]:
         from hexjax.sim.physics import pick
         # the physics is chosen here, once: the fastest engine certified for the preset on this host that can
         # do what the command needs (`NEEDS`), or the one --engine names; the command runs it as given
-        if hasattr(mod, "prepare"):  # checks that need no JAX and settings made before it loads
-            mod.prepare(o)
         physics = pick(o.physics, getattr(o, "engine", "") or None, needs=getattr(mod, "NEEDS", frozenset()))
         check_batch_memory(o, physics.engine)
         print(physics.header(), flush=True)

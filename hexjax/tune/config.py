@@ -5,12 +5,13 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any, Dict, Optional, Tuple
+from typing import TYPE_CHECKING, Any, Dict, Optional, Tuple
 
 from hexjax.sim.config import GRAD_SOLVERS
-from hexjax.tune.space import ParamSpace, load_values, make_space
 from hexjax.world.files import build, read_yaml, resolve
-from hexjax.world.presets import get_terrain
+
+if TYPE_CHECKING:
+    from hexjax.tune.space import ParamSpace
 
 OBJECTIVE_TERMS = ("dx", "dy", "dalpha", "fall", "energy")
 OPTIMIZERS = ("adam", "sgd")
@@ -142,6 +143,9 @@ class TuneConfig:
 
     def _check_data(self) -> None:
         """The walks: controller and gait, terrains, batches, steps, the start, distance and horizon."""
+        from hexjax.control.registry import CONTROLLERS
+        if self.controller not in CONTROLLERS:
+            raise ValueError(f"controller={self.controller!r}: use one of {', '.join(CONTROLLERS)}")
         t = self.terrain
         if not (isinstance(t, str) or (isinstance(t, (list, tuple)) and t and all(isinstance(x, str) for x in t))):
             raise ValueError(f"tune.terrain={t!r}: must be a terrain preset name or a non-empty list of them")
@@ -160,6 +164,7 @@ class TuneConfig:
             if not isinstance(self.start, str):
                 raise ValueError(f"tune.start={self.start!r}: must be a params preset name or a log.json path")
             try:
+                from hexjax.tune.space import load_values
                 load_values(self.start)
             except ValueError as err:
                 raise ValueError(f"tune.start={self.start!r}: {err}") from None
@@ -268,9 +273,11 @@ class TuneConfig:
     def terrain_spec(self, name: str):
         """The TerrainSpec of preset `name` as this config trains on it: the corridor covers the walk, and
         `terrain_overrides` apply."""
+        from hexjax.world.presets import get_terrain  # JAX loads here: a config's first checks answer without it
         return get_terrain(name, **{"length": self.distance + 0.3, **self.terrain_overrides})
 
     def space(self) -> ParamSpace:
+        from hexjax.tune.space import make_space
         return make_space(self.controller, overrides=self.params, only=list(self.params) or None)
 
 

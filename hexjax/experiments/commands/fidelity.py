@@ -36,7 +36,6 @@ import numpy as np
 
 # plot and report are the registry's (this module is the entry)
 from hexjax.experiments.commands.fidelity_view import CONTRACT, plot, report  # noqa: F401
-from hexjax.sim.metrics import paired
 from hexjax.experiments.runner import keep_piece, read_kept, read_partial, write_partial
 
 ALL = "all"
@@ -245,6 +244,7 @@ def _replay(o, preset, spec: Dict, key, robot) -> Dict[str, List]:
 
 def _compare(cells: List[Cell], runs, res_a: Dict, res_b: Dict) -> List[Dict]:
     """One row per (controller, cell): both presets' figures and the paired differences, with the verdict."""
+    from hexjax.sim.metrics import paired
     rows = []
     for label, _, _, _, idx in runs:
         for j in idx:
@@ -291,17 +291,32 @@ def _replay_rows(times, rep_a: Dict, rep_b: Dict) -> List[Dict]:
     return rows
 
 
-def run(o, entry) -> Dict:
-    from hexjax.experiments.commands.robustness import _controllers, _host_devices
-    if not (isinstance(o.batch, int) and o.batch >= 1):
-        raise ValueError(f"--batch={o.batch!r}: must be a whole number >= 1")
-    spec = entry.preset
+def _cells(o, spec: Dict) -> List[Cell]:
+    """The matrix's cells that --only names (all without it); one ValueError line where it names none."""
     cells = matrix(spec)
     if o.only:
         cells = [c for c in cells if any(s in c.name for s in o.only)]
         if not cells:
             raise ValueError(f"--only {','.join(o.only)}: no cell of the matrix matches; cells: "
                              + ", ".join(c.name for c in matrix(spec)))
+    return cells
+
+
+def prepare(o, entry) -> None:
+    """What the runner calls before anything loads JAX: the batch, the cells and the controllers checked."""
+    from hexjax.experiments.commands.robustness import check_controller
+    if not (isinstance(o.batch, int) and o.batch >= 1):
+        raise ValueError(f"--batch={o.batch!r}: must be a whole number >= 1")
+    _cells(o, entry.preset)
+    for label in o.controllers:
+        check_controller(label)
+
+
+def run(o, entry) -> Dict:
+    from hexjax.experiments.commands.robustness import _controllers, _host_devices
+    prepare(o, entry)  # also for a caller in Python
+    spec = entry.preset
+    cells = _cells(o, spec)
     a, b = _presets(o)
     _host_devices()
     import jax

@@ -131,6 +131,12 @@ def _engine(o):
     return pick(o.physics, o.engine or None, needs={MESH} if jax.process_count() > 1 else ())
 
 
+def check_controller(label) -> None:
+    """One ValueError line for a --controllers label that names no controller a sweep can walk (no JAX)."""
+    if str(label).partition("@")[0] not in SWEEPABLE:
+        raise ValueError(f"--controllers {label!r}: use some of {', '.join(SWEEPABLE)} (optionally name@robot)")
+
+
 def _controllers(names, default_robot):
     """{label: (controller, robot)} for labels 'name' or 'name@robot' (a robot preset or .yaml path; default
     --robot): gait and tactile (Luneckas 2020 tripod), cpg (Yu 2019, reflexes on), avoid (the tripod steered
@@ -140,9 +146,7 @@ def _controllers(names, default_robot):
     out = {}
     for label in names:
         name, _, rname = str(label).partition("@")
-        if name not in SWEEPABLE:
-            raise ValueError(f"--controllers {label!r}: use some of {', '.join(SWEEPABLE)} "
-                             "(optionally name@robot)")
+        check_controller(label)
         robot = get_robot(rname) if rname else default_robot
         out[str(label)] = (make_controller(name, robot), robot)
     return out
@@ -157,6 +161,8 @@ def _checked(o):
         raise ValueError(f"--axis {axes[0][0]} given twice")
     if not (isinstance(o.batch, int) and o.batch >= 1):
         raise ValueError(f"--batch={o.batch!r}: must be a whole number >= 1")
+    for label in o.controllers:
+        check_controller(label)
     if not (0 < o.distance <= 5):
         raise ValueError(f"--distance={o.distance!r}: must be in (0, 5] m")
     raw = read_yaml(o.randomization) if o.randomization else None
@@ -348,7 +354,7 @@ def _distributed(o) -> None:
     cache.every_cpu_process_writes()
 
 
-def prepare(o) -> None:
+def prepare(o, entry=None) -> None:
     """What the runner calls before it picks the physics (which loads JAX): the options checked without JAX, the
     host's cores as devices and, with --processes > 1, JAX's multi-process runtime, both set before JAX loads."""
     _checked(o)

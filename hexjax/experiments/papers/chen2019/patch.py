@@ -14,6 +14,7 @@ from tqdm.auto import tqdm
 
 from hexjax.control.gait import GaitParams
 from hexjax.control.registry import make_controller
+from hexjax.experiments.runner import step_bar
 from hexjax.perceive.grid import dem_grid
 from hexjax.sim.config import RolloutConfig
 from hexjax.sim.engines import RANGE_SENSORS, TRACES
@@ -58,7 +59,7 @@ def _summarise(parts, far: float) -> Dict:
 
 def run_chen2019(n: int = 16, seed: int = 0, robot: str = "chen2019", duration: float = 16.0, stride: float = 0.05,
                  phase_time: float = 0.5, fixed_step_heights=(0.08, 0.13), chunk: int = 0, mesh=None,
-                 sensor=None, perceive_every: int = 5, progress: bool = True, physics="validated") -> Dict:
+                 sensor=None, perceive_every: int = 5, progress: bool = False, physics="validated") -> Dict:
     """Planned (SupportPlanController on the true DEM) vs fixed (the Luneckas 2020 tripod at the same stride
     and period and the robot's standard posture, at each swing height of `fixed_step_heights`) over n
     randomised wave patches (`patch_spec`), under the physics preset `physics` (on MJX, `CHEN_SLOTS` slots per
@@ -68,7 +69,8 @@ def run_chen2019(n: int = 16, seed: int = 0, robot: str = "chen2019", duration: 
     (the rollout's fall test: torso tilt > 60 deg or centre < 3 cm above the ground), crossings (torso past
     the patch's far edge, upright), stalls (neither), tilt statistics; for the planned ones also the smallest
     stability margin at a transition and control steps with a leg target out of reach; for the perceived one
-    the final map's error against the true DEM over the patch. `_records` keeps traces for plots."""
+    the final map's error against the true DEM over the patch. `_records` keeps traces for plots. progress: a bar
+    per walk over its control steps (a program with a host callback, compiled afresh), or per chunk."""
     if not (isinstance(n, int) and n >= 1):
         raise ValueError(f"batch n={n!r}: must be an integer >= 1")
     if not (isinstance(duration, (int, float)) and duration > 0):
@@ -114,14 +116,16 @@ def run_chen2019(n: int = 16, seed: int = 0, robot: str = "chen2019", duration: 
         parts = []
         t0 = time.perf_counter()
         comp = 0.0
-        for i in tqdm(range(0, n, chunk), desc=f"chen2019 {name}", unit="chunk", disable=n <= chunk or not progress):
-            sl = lambda x: x[i:i + chunk]
-            prm = jax.tree_util.tree_map(sl, params) if batched else params
-            s, st = rollout(rb, jax.tree_util.tree_map(sl, terrain), ctrl, prm, duration, jax.random.fold_in(k_r, i),
-                            physics=phys, config=cfg, params_batched=batched, mesh=mesh, stats=True,
-                            engine=preset.engine.name)
-            comp += st.compile_s
-            parts.append(jax.device_get(s))
+        with step_bar(f"chen2019 {name}: {n} patches, {duration:g} s", ctrl.dt, duration, cfg,
+                      enabled=progress and n <= chunk) as run_cfg:
+            for i in tqdm(range(0, n, chunk), desc=f"chen2019 {name}", unit="chunk", disable=n <= chunk or not progress):
+                sl = lambda x: x[i:i + chunk]
+                prm = jax.tree_util.tree_map(sl, params) if batched else params
+                s, st = rollout(rb, jax.tree_util.tree_map(sl, terrain), ctrl, prm, duration,
+                                jax.random.fold_in(k_r, i), physics=phys, config=run_cfg, params_batched=batched,
+                                mesh=mesh, stats=True, engine=preset.engine.name)
+                comp += st.compile_s
+                parts.append(jax.device_get(s))
         row = _summarise(parts, far)
         row["wall_s"], row["compile_s"] = time.perf_counter() - t0, comp
         cat = lambda f: np.concatenate([np.asarray(f(p)) for p in parts])
@@ -207,7 +211,7 @@ def run(o, entry) -> Dict:
     p = entry.preset
     return run_chen2019(n=o.batch, seed=o.seed, robot=o.robot, duration=o.duration, stride=p["stride"],
                         phase_time=p["phase_time"], fixed_step_heights=tuple(p["fixed_step_heights"]), chunk=o.chunk,
-                        physics=o.physics)
+                        physics=o.physics, progress=True)
 
 
 def report(res: Dict) -> str:

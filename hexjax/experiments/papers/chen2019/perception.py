@@ -24,7 +24,7 @@ def run(o, entry) -> Dict:
     p = entry.preset
     return patch.run_chen2019(n=o.batch, seed=o.seed, robot=o.robot, duration=o.duration, stride=p["stride"],
                               phase_time=p["phase_time"], fixed_step_heights=(), chunk=o.chunk,
-                              sensor=get_sensor(o.sensor), perceive_every=o.every, physics=o.physics)
+                              sensor=get_sensor(o.sensor), perceive_every=o.every, physics=o.physics, progress=True)
 
 
 def report(res: Dict) -> str:

@@ -20,6 +20,7 @@ from tqdm.auto import tqdm
 
 from hexjax.control.avoid_gait import AvoidGaitController, fast_gait, field_params, small_robot_params
 from hexjax.control.registry import make_controller
+from hexjax.experiments.runner import step_bar
 from hexjax.plan import avoid
 from hexjax.plan.avoid import AvoidConfig
 from hexjax.plan.fields import Fields, small_fields, straight_line_blocked
@@ -117,7 +118,7 @@ def seeded_fields(seed: int, n: int, ap):
 def run_closed_loop(n: int = 32, seed: int = 0, robot: str = "luneckas2020", n_T: int = 2,
                     duration: Optional[float] = None, chunk: int = 0, mesh=None, fields: Optional[Fields] = None,
                     blind: bool = False, controller: Optional[AvoidGaitController] = None,
-                    progress: bool = True, physics="validated") -> Dict:
+                    progress: bool = False, physics="validated", label: str = "closed loop") -> Dict:
     """Closed-loop avoidance over n random fields (`small_fields`, or the given `fields`): the kinematic
     planner (`avoid.plan`, same params) and the MJX hexapod with `AvoidGaitController`, side by side.
     blind: the MJX robot's planner is not told of the obstacles (they are still in the terrain), the
@@ -125,7 +126,8 @@ def run_closed_loop(n: int = 32, seed: int = 0, robot: str = "luneckas2020", n_T
     n_T), e.g. one that plans round perceived obstacles (`hexjax.control.perceive_gait`). Returns a JSON-ready
     dict; the `_`-keys hold arrays for plots. A field counts as a closed-loop success when the robot stopped
     within goal_tol of the target, touched no obstacle, did not fall and stayed finite. physics: a physics preset
-    on MJX (name, .yaml path or `PhysicsPreset`; the touch test reads MJX's foot traces)."""
+    on MJX (name, .yaml path or `PhysicsPreset`; the touch test reads MJX's foot traces). progress: a bar over the
+    walk's control steps named `label` (a program with a host callback, compiled afresh), or per chunk."""
     rb = get_robot(robot)
     ctrl = controller or make_controller("avoid", rb, avoid=AvoidConfig(n_T=n_T, max_cycles=40))
     # the touch test reads the foot traces; a perceiving controller casts rays
@@ -156,14 +158,16 @@ def run_closed_loop(n: int = 32, seed: int = 0, robot: str = "luneckas2020", n_T
     outs = []
     t0 = time.perf_counter()
     compile_s = 0.0
-    for i in tqdm(range(0, n, chunk), desc="closed loop", unit="chunk", disable=n <= chunk or not progress):
-        sl = lambda x: x[i:i + chunk]
-        s, st = rollout(rb, jax.tree_util.tree_map(sl, terrain), ctrl, jax.tree_util.tree_map(sl, params), duration,
-                        jax.random.fold_in(k_roll, i), config=cfg, params_batched=True, mesh=mesh, stats=True,
-                        physics=preset.config(kind="obstacles"), engine=preset.engine.name)
-        compile_s += st.compile_s
-        touched = touches(rb, s.trace, s.foot_trace, jax.tree_util.tree_map(sl, terrain))
-        outs.append((jax.device_get(s), touched))
+    with step_bar(f"{label}: {n} fields, {duration:g} s", ctrl.dt, duration, cfg,
+                  enabled=progress and n <= chunk) as run_cfg:
+        for i in tqdm(range(0, n, chunk), desc=label, unit="chunk", disable=n <= chunk or not progress):
+            sl = lambda x: x[i:i + chunk]
+            s, st = rollout(rb, jax.tree_util.tree_map(sl, terrain), ctrl, jax.tree_util.tree_map(sl, params),
+                            duration, jax.random.fold_in(k_roll, i), config=run_cfg, params_batched=True, mesh=mesh,
+                            stats=True, physics=preset.config(kind="obstacles"), engine=preset.engine.name)
+            compile_s += st.compile_s
+            touched = touches(rb, s.trace, s.foot_trace, jax.tree_util.tree_map(sl, terrain))
+            outs.append((jax.device_get(s), touched))
     wall = time.perf_counter() - t0
     cat = lambda f: np.concatenate([np.asarray(f(o[0])) for o in outs])
     touched = np.concatenate([o[1] for o in outs])
@@ -262,7 +266,7 @@ def plot_closed_loop(res: Dict, png: str, k: int = 6) -> None:
 # The experiment (configs/experiments/zhao2018-mjx.yaml) ----------------------------------------------------
 def run(o, entry) -> Dict:
     return run_closed_loop(n=o.batch, seed=o.seed, robot=o.robot, n_T=entry.preset["n_T"], duration=o.duration,
-                           blind=o.blind, chunk=o.chunk, physics=o.physics)
+                           blind=o.blind, chunk=o.chunk, physics=o.physics, progress=True, label="zhao2018-mjx")
 
 
 def report(res: Dict) -> str:

@@ -56,7 +56,8 @@ def _mode_numbers(res: Dict, dt: float, goal_tol: float) -> Dict:
 
 def run_perception(n: int = 16, seed: int = 0, robot: str = "luneckas2020", sensor: str = "kinect_v1",
                    n_T: int = 2, cell: float = 0.04, every: int = 5, threshold: float = 0.05,
-                   duration=None, chunk: int = 0, modes=MODES, physics="validated", **sensor_overrides) -> Dict:
+                   duration=None, chunk: int = 0, modes=MODES, physics="validated", progress: bool = False,
+                   **sensor_overrides) -> Dict:
     """Every mode of `modes` over the same n fields (same seed, same obstacle boxes, same rollout keys), under the
     physics preset `physics` (on MJX)."""
     if not (isinstance(n, int) and n >= 1):
@@ -73,7 +74,7 @@ def run_perception(n: int = 16, seed: int = 0, robot: str = "luneckas2020", sens
     for mode in modes:
         res = run_closed_loop(n=n, seed=seed, robot=robot, n_T=n_T, duration=duration, chunk=chunk, fields=fields,
                               blind=mode == "blind", controller=ctrl if mode == "perceived" else None,
-                              progress=False, physics=physics)
+                              progress=progress, physics=physics, label=f"zhao2018-perception {mode}")
         raw[mode] = res
         out[mode] = _mode_numbers(res, base.dt, float(ap.goal_tol))
         duration = res["config"]["duration_s"]  # every mode walks as long as the first
@@ -149,7 +150,7 @@ def run_sweeps(sweeps, n: int, seed: int, robot: str, sensor: str, **kw) -> Dict
 def run(o, entry) -> Dict:
     pre = entry.preset
     kw = dict(n_T=pre["n_T"], cell=o.cell, every=o.every, threshold=pre["obstacle_threshold"], duration=o.duration,
-              chunk=o.chunk, physics=o.physics)
+              chunk=o.chunk, physics=o.physics, progress=True)
     if o.sweep:
         return run_sweeps(o.sweep, n=o.batch, seed=o.seed, robot=o.robot, sensor=o.sensor, **kw)
     return run_perception(n=o.batch, seed=o.seed, robot=o.robot, sensor=o.sensor, **kw)
