@@ -79,7 +79,7 @@ def scene_model(robot: RobotSpec, physics: PhysicsConfig, box_pos, box_half, box
     return m
 
 
-def render_env(robot: RobotSpec, physics: PhysicsConfig, terrain, summary, env: int = 0, width: int = 640,
+def render_env(robot: RobotSpec, physics: PhysicsConfig, terrain, summary, *, env: int = 0, width: int = 640,
                height: int = 480, every: int = 2, force_scale: float = 0.03, distance: float = 0.9,
                azimuth: float = 135.0, elevation: float = -25.0, progress: bool = True):
     """Frames (N, H, W, 3) uint8 of env `env` of a recorded rollout (`summary.qpos_trace` etc.), one per
@@ -159,7 +159,7 @@ def write_video(frames: np.ndarray, path: str, fps: float) -> str:
     return path
 
 
-def render_walk(robot_name: str = "luneckas2020", terrain_name: str = "high-large", controller: str = "tactile",
+def render_walk(robot_name: str = "luneckas2020", *, terrain_name: str = "high-large", controller: str = "tactile",
                 seconds: float = 4.0, seed: int = 0, envs: Sequence[int] = (0,), out: str = "out/walk.mp4",
                 width: int = 640, height: int = 480, every: int = 2, still: Optional[str] = None,
                 physics="validated") -> dict:

@@ -183,7 +183,8 @@ def test_inputs_once_answered_after_jax_loaded_are_answered_before():
              (["fidelity", "--controllers", "nosuch"], "--controllers 'nosuch': use some of"),
              (["tune", "--set", "controller=nosuch"], "controller='nosuch': use one of gait, tactile, cpg"),
              (["experiment", "yu2019-step", "--params", "nosuch"], "params preset 'nosuch' unknown"),
-             (["robustness", "--axis", "friction=0.5", "--controllers", "nosuch"], "--controllers 'nosuch'")]
+             (["robustness", "--axis", "friction=0.5", "--controllers", "nosuch"], "--controllers 'nosuch'"),
+             (["experiment", "luneckas2020-predictor", "--data", "nosuch.npz"], "--data='nosuch.npz': no such file")]
     code = ("import sys\nfrom hexjax.cli import main\n"
             f"for argv in {[c[0] for c in cases]!r}:\n"
             "    assert main(argv) == 2, argv\n"

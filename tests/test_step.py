@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from hexjax.sim.config import PhysicsConfig, RolloutConfig
-from hexjax.sim.step import (accumulate, control_steps, fall_state, init_acc, settle_steps, substeps, tilt,
+from hexjax.sim.step import (StepClock, accumulate, control_steps, fall_state, init_acc, settle_steps, substeps, tilt,
                              total_physics_steps)
 
 
@@ -47,7 +47,8 @@ def test_accumulators_worked_by_hand():
     step; travel and path sum the walking steps only; the heading change crosses +-pi and unwraps; a fall
     at walking step 2 is timed at 2 dt; energy skips the non-finite step; tactile counts walking steps."""
     cfg, dt, n_settle = RolloutConfig(), 0.02, 2
-    step = jax.jit(lambda acc, i, qo, qn, fin, e, tac: accumulate(acc, cfg, i, n_settle, dt, qo, qn, fin, e, tac, 0.0))
+    step = jax.jit(lambda acc, i, qo, qn, fin, e, tac: accumulate(acc, cfg, StepClock(i, n_settle, dt), qo, qn, fin, e,
+                                                                  tac, 0.0))
     poses = [_q(0.0, 0.0, 0.1, 3.0), _q(0.01, 0.0, 0.1, 3.1),  # settling
              _q(0.04, 0.04, 0.1, -3.1),  # walk: (0.03, 0.04) and yaw 3.1 -> -3.1 (+0.083 rad through pi)
              _q(0.04, 0.04, 0.02, -3.1),  # falls (torso 2 cm over the ground)

@@ -8,7 +8,8 @@ A file holds:
     entry:   the module that runs it; it defines run(opts, entry) -> result dict, report(result) -> str and,
              where it draws, plot(result, png_path) -> [written paths]
     options: the command-line flags, each {default, help} and optionally choices, a preset kind (robots,
-             terrains, tune, sensors: a preset name or a .yaml path), the suffixes of an output file, or `repeat` (the
+             terrains, tune, sensors: a preset name or a .yaml path), the suffixes of an output file or of an input
+             file that must exist, or `repeat` (the
              flag may be given several times), and for a number the bounds `min`, `max` (inclusive), `above`,
              `below` (exclusive), checked as the arguments parse; the type is the default's or `type`'s (a list
              default takes a comma list, each item checked; a false default is a switch)
@@ -30,14 +31,15 @@ from typing import Any, Dict, Optional, Tuple
 from hexjax.world.files import preset_names, read_yaml, resolve
 
 BOUND_KEYS = ("min", "max", "above", "below")
-OPTION_KEYS = {"default", "help", "choices", "preset", "output", "type", "repeat", *BOUND_KEYS}
+OPTION_KEYS = {"default", "help", "choices", "preset", "output", "input", "type", "repeat", *BOUND_KEYS}
 TYPES = {"int": int, "float": float, "str": str}
 
 
 @dataclasses.dataclass(frozen=True)
 class Option:
     """One command-line flag: `--name` (dashes for underscores) with its default and help; `preset`: the
-    preset kind its value names; `output`: the file suffixes it may end in (checked before any work)."""
+    preset kind its value names; `output`: the file suffixes it may end in; `input`: those of a file that must
+    exist (each checked before any work)."""
 
     name: str
     default: Any
@@ -45,6 +47,7 @@ class Option:
     choices: Optional[Tuple[Any, ...]] = None
     preset: Optional[str] = None
     output: Optional[Tuple[str, ...]] = None
+    input: Optional[Tuple[str, ...]] = None
     type: Optional[str] = None
     repeat: bool = False
     min: Optional[float] = None
@@ -125,15 +128,15 @@ def _option(source: str, name: str, spec) -> Option:
     if pk is not None and pk not in ("robots", "terrains", "tune", "sensors", "physics", "params"):
         raise ValueError(f"{source}: options.{name}.preset={pk!r}: use robots, terrains, tune, sensors, physics or "
                          "params")
-    out = spec.get("output")
+    out, inp = spec.get("output"), spec.get("input")
     bounds = {k: spec[k] for k in BOUND_KEYS if spec.get(k) is not None}
     for k, b in bounds.items():
         if isinstance(b, bool) or not isinstance(b, (int, float)) or not math.isfinite(b):
             raise ValueError(f"{source}: options.{name}.{k}={b!r}: a bound must be a finite number")
     opt = Option(name=name, default=spec["default"], help=str(spec.get("help", "")),
                  choices=tuple(spec["choices"]) if spec.get("choices") is not None else None, preset=pk,
-                 output=tuple(out) if out else None, type=spec.get("type"), repeat=bool(spec.get("repeat", False)),
-                 **bounds)
+                 output=tuple(out) if out else None, input=tuple(inp) if inp else None, type=spec.get("type"),
+                 repeat=bool(spec.get("repeat", False)), **bounds)
     if bounds and opt.value_type not in (int, float):
         raise ValueError(f"{source}: options.{name}: bounds {sorted(bounds)} need a number option (its default or "
                          "`type` int or float)")

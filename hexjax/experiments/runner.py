@@ -54,7 +54,8 @@ def check_folder(flag: str, value, folder: str) -> None:
 
 def check_options(entry: Entry, o: types.SimpleNamespace) -> None:
     """Raise one ValueError line for an output path with the wrong suffix, naming a folder, or in a folder that
-    cannot be made or written, or a preset name that does not resolve, before anything runs."""
+    cannot be made or written, an input file that is not there, or a preset name that does not resolve, before
+    anything runs."""
     for opt in entry.options:
         v = getattr(o, opt.name)
         if opt.output and v:
@@ -63,6 +64,11 @@ def check_options(entry: Entry, o: types.SimpleNamespace) -> None:
             if os.path.isdir(v):
                 raise ValueError(f"{opt.flag}={v!r}: a folder is there; give a file path")
             check_folder(opt.flag, v, os.path.dirname(os.path.abspath(v)))
+        for f in (v if isinstance(v, list) else [v]) if opt.input and v else []:
+            if not str(f).lower().endswith(opt.input):
+                raise ValueError(f"{opt.flag}={f!r}: the file must end in {' or '.join(opt.input)}")
+            if not os.path.isfile(f):
+                raise ValueError(f"{opt.flag}={f!r}: no such file" + (f" ({opt.help})" if opt.help else ""))
         if opt.preset and v:
             for name in (v if isinstance(v, list) else [v]):
                 resolve(opt.preset, name)

@@ -72,7 +72,7 @@ class HexapodGoalEnv(Env):
     terrain. robot, terrain: a preset name, a .yaml path, or a `RobotSpec` / `TerrainSpec`. See the module
     docstring for observation, action and reward."""
 
-    def __init__(self, robot="luneckas2020", terrain="flat", goal_distance: float = 1.0,
+    def __init__(self, robot="luneckas2020", terrain="flat", *, goal_distance: float = 1.0,
                  goal_spread: float = 0.3, residual: bool = True, residual_scale: float = 0.25, gait: str = "tripod",
                  yaw_noise: float = math.radians(10.0), friction_range=(0.8, 1.2), action_cost: float = 0.01,
                  fall_penalty: float = 1.0, goal_bonus: float = 1.0, physics: PhysicsConfig | None = None,

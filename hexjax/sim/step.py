@@ -19,6 +19,7 @@ engine (`sm.engine`); this module imports none.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import math
 from typing import Any, Optional
 
@@ -161,16 +162,37 @@ def init_acc(start_pose):
                 tactile_steps=jnp.zeros(6, jnp.int32), foot_slip=jnp.asarray(0.0))
 
 
-def accumulate(acc, cfg: RolloutConfig, i, n_settle: int, ctrl_dt: float, q_old, q_new, finite, energy, tactile,
-               ground_z, slipped=0.0):
-    """The accumulators after control step i (0-based, settling steps included) of one env: q_old, q_new
+@dataclasses.dataclass(frozen=True)
+class StepClock:
+    """Where a control step lies in a rollout: `i` its index (0-based, settling included; traced in a scan), after
+    `n_settle` settling steps of `dt` s each. Both engines' control steps take it (`controller_phase`,
+    `accumulate`)."""
+
+    i: Any
+    n_settle: int
+    dt: float
+
+    @property
+    def walking(self):
+        """Whether the step is past settling."""
+        return self.i >= self.n_settle
+
+    @property
+    def t_walk(self):
+        """Seconds walked when the step begins (negative while settling)."""
+        return (self.i - self.n_settle) * self.dt
+
+
+def accumulate(acc, cfg: RolloutConfig, clock: StepClock, q_old, q_new, finite, energy, tactile, ground_z,
+               slipped=0.0):
+    """The accumulators after the control step at `clock` of one env: q_old, q_new
     (nq,) the generalised positions before and after it (q_new already reset where the step was not
     finite), energy () J of the step, tactile (6,) pads on, slipped () m the feet slid (`hexjax.sim.slip.slip`).
     Settling steps count only for the start pose."""
-    walking = i >= n_settle
+    i, n_settle, walking = clock.i, clock.n_settle, clock.walking
     fallen, t, height = fall_state(cfg, q_new, ground_z)
     fallen_now = walking & fallen
-    t_now = (i + 1 - n_settle) * ctrl_dt
+    t_now = (i + 1 - n_settle) * clock.dt
     dxy = q_new[:2] - q_old[:2]
     step_xy = jnp.sqrt(jnp.sum(dxy * dxy) + 1e-18)  # offset keeps the derivative finite at rest
     pose = jnp.stack([q_new[0], q_new[1], quat_yaw(q_new[3:7])])
@@ -210,21 +232,21 @@ def start_yaw(cfg: RolloutConfig, key):
     return jax.random.uniform(k_yaw, (), minval=-cfg.yaw_noise, maxval=cfg.yaw_noise), k_ctrl
 
 
-def controller_phase(controller, sensors: SensorConfig, params, cstate, obs, i, n_settle: int, ctrl0, pert=None,
+def controller_phase(controller, sensors: SensorConfig, params, cstate, obs, clock: StepClock, ctrl0, pert=None,
                      pstate=None, sense=None):
-    """The controller's part of control step i (0-based, settling included) of one env: (controller state, joint
-    targets, perturbation state, what the controller read). While settling (i < n_settle) the targets are `ctrl0`
+    """The controller's part of the control step at `clock` of one env: (controller state, joint targets,
+    perturbation state, what the controller read). While settling the targets are `ctrl0`
     and the state stays as it was. With `pert` (one env's `Perturbation`) the controller reads the draw's
     perturbed sensing (`hexjax.sim.perturb.observe`) and the targets go through its latency and locked leg
     (`hexjax.sim.perturb.act`, with `pstate`); `obs` stays the true reading. `sense(cstate) -> cstate`, if given,
     runs before the controller's step (the range sensor's scan)."""
-    t_walk = (i - n_settle) * controller.dt
-    seen = obs if pert is None else perturb.observe(obs, pert, i, t_walk, sensors)
+    t_walk = clock.t_walk
+    seen = obs if pert is None else perturb.observe(obs, pert, clock.i, t_walk, sensors)
     if sense is not None:
         cstate = sense(cstate)
     with jax.named_scope("hx.controller"):
         new_cstate, action = controller.step(params, cstate, seen)
-    walking = i >= n_settle
+    walking = clock.walking
     action = jnp.where(walking, action, ctrl0)
     cstate = jax.tree_util.tree_map(lambda a, b: jnp.where(walking, a, b), new_cstate, cstate)
     if pert is not None:
@@ -371,7 +393,8 @@ def make_control_step(sm: SimModel, sensors: SensorConfig, cfg: RolloutConfig, c
             return jax.lax.cond((i >= n_settle) & ((i - n_settle) % every == 0),
                                 lambda c: sense(c, i, params, terrain, d, sense_key), lambda c: c, c)
 
-        cstate, action, pstate, seen = controller_phase(controller, sensors, params, cstate, obs, i, n_settle, ctrl0,
+        clock = StepClock(i, n_settle, controller.dt)
+        cstate, action, pstate, seen = controller_phase(controller, sensors, params, cstate, obs, clock, ctrl0,
                                                         pert, carry[3] if pert is not None else None,
                                                         scan if sensor is not None else None)
         if cfg.grad_clip is not None:  # the physics' gradient reaches the controller through the action
@@ -380,8 +403,8 @@ def make_control_step(sm: SimModel, sensors: SensorConfig, cfg: RolloutConfig, c
         d_new, power = physics(m, d, n_sub, detach=sm.engine.detach, unroll=cfg.unroll_substeps)
         d_new, finite = sm.engine.keep_finite(d_new, d)
         with jax.named_scope("hx.accumulate"):
-            acc = accumulate(acc, cfg, i, n_settle, controller.dt, d.qpos, d_new.qpos, finite, jnp.sum(power) * dt,
-                             obs.tactile, terrain.ground_z, slip(sm.robot, d.qpos, d_new.qpos, obs.foot_contact))
+            acc = accumulate(acc, cfg, clock, d.qpos, d_new.qpos, finite, jnp.sum(power) * dt, obs.tactile,
+                             terrain.ground_z, slip(sm.robot, d.qpos, d_new.qpos, obs.foot_contact))
         out = None
         if cfg.record:
             out = dict(pose=jnp.concatenate([d_new.qpos[:3], quat_yaw(d_new.qpos[3:7])[None]]),

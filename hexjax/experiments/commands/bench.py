@@ -53,7 +53,7 @@ def mujoco_c_steps_per_s(robot: str, terrain: str, physics: PhysicsConfig, secon
     return n / (time.perf_counter() - t0)
 
 
-def bench(robot: str = "luneckas2020", batches: Sequence[int] = (16, 64, 256), sim_seconds: float = 2.0,
+def bench(robot: str = "luneckas2020", *, batches: Sequence[int] = (16, 64, 256), sim_seconds: float = 2.0,
           terrains: Sequence[str] = ("flat", "high-large"), gait: str = "tripod",
           physics: Sequence = ("validated",), repeats: int = 2, progress: bool = True,
           controller: str = "gait", engine: str = "mjx", nthread: int = 0, devices: int = 1,

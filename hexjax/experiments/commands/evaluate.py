@@ -22,7 +22,7 @@ from hexjax.world.terrain import LUNECKAS2020_CATEGORIES, pad_terrain, sample
 DEFAULT_CATEGORIES = ("flat",) + LUNECKAS2020_CATEGORIES
 
 
-def evaluate(robot: str = "luneckas2020", gait: str = "tripod", distance: float = 1.0, batch: int = 16,
+def evaluate(robot: str = "luneckas2020", gait: str = "tripod", *, distance: float = 1.0, batch: int = 16,
              seed: int = 0, categories: Sequence[str] = DEFAULT_CATEGORIES, step_height: float = 0.03,
              physics="validated", progress: bool = True, mesh=None, engine: str | None = None) -> Dict:
     """Walk `distance` m with the open-loop Luneckas 2020 gait on each category; returns

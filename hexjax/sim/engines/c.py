@@ -278,8 +278,9 @@ def _controller_fns(controller, sensors: SensorConfig, p_axis, perturbed: bool =
     def step(params, cstate, qpos, qvel, sens, t, i, ctrl0, pert, pstate):
         obs = obs_from_sensordata(sensors, qpos.astype(jnp.float32), qvel.astype(jnp.float32),
                                   sens.astype(jnp.float32), t.astype(jnp.float32))
-        cstate, action, pstate, seen = sim_step.controller_phase(controller, sensors, params, cstate, obs, i,
-                                                                 n_settle, ctrl0, pert, pstate)
+        clock = sim_step.StepClock(i, n_settle, controller.dt)
+        cstate, action, pstate, seen = sim_step.controller_phase(controller, sensors, params, cstate, obs, clock,
+                                                                 ctrl0, pert, pstate)
         return cstate, action, pstate, obs, controller.trace(cstate, seen)
 
     e = 0 if perturbed else None  # the draws and their state: per env, or None
@@ -295,7 +296,7 @@ def _accumulator(config: RolloutConfig, ctrl_dt: float, n_settle: int, robot: Ro
     """`hexjax.sim.step.accumulate` over a chunk of envs (the MJX rollout's own summary arithmetic), foot slip
     included (`hexjax.sim.slip`, from the feet in contact at the step's start)."""
     def one(acc, i, q_old, q_new, finite, energy, tactile, ground_z, contact):
-        return accumulate(acc, config, i, n_settle, ctrl_dt, q_old, q_new, finite, energy, tactile, ground_z,
-                          slip(robot, q_old, q_new, contact))
+        return accumulate(acc, config, sim_step.StepClock(i, n_settle, ctrl_dt), q_old, q_new, finite, energy,
+                          tactile, ground_z, slip(robot, q_old, q_new, contact))
 
     return jax.jit(jax.vmap(one, in_axes=(0, None, 0, 0, 0, 0, 0, 0, 0)))

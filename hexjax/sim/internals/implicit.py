@@ -35,6 +35,7 @@ the iterations themselves and stays as the reference (`tests/test_implicit.py` c
 from __future__ import annotations
 
 import contextlib
+import contextvars
 
 import jax
 import jax.numpy as jnp
@@ -183,18 +184,25 @@ def _attach(m, d, a_star, frc, efc):
 # `implicit_solve` hands out the solution it computed ("kept") or takes one computed before ("given") instead
 # of running the solver. `hexjax.sim.windows` keeps each physics step's solution in its forward rollout and
 # gives it back when its backward pass runs the step again, so that pass does not solve a second time.
-_SLOTS: list = []  # one per traced mjx.step (`solution_slot`)
-_STEPS: list = []  # one per traced control step (`solutions`)
+# The open channels, innermost last, are context variables: a trace runs in its caller's thread, and each thread
+# (fidelity's rollouts run in several) traces with its own channels.
+_SLOTS: contextvars.ContextVar = contextvars.ContextVar("hexjax_solution_slots", default=())  # per mjx.step
+_STEPS: contextvars.ContextVar = contextvars.ContextVar("hexjax_solution_steps", default=())  # per control step
 
 
 @contextlib.contextmanager
-def _channel(stack: list, given):
+def _channel(var: contextvars.ContextVar, given):
     channel = {"given": given, "kept": None}
-    stack.append(channel)
+    token = var.set(var.get() + (channel,))
     try:
         yield channel
     finally:
-        stack.pop()
+        var.reset(token)
+
+
+def _innermost(var: contextvars.ContextVar):
+    open_ = var.get()
+    return open_[-1] if open_ else None
 
 
 def solution_slot(given=None):
@@ -214,14 +222,14 @@ def solutions(given=None):
 
 def solutions_channel():
     """The innermost open `solutions` channel, or None."""
-    return _STEPS[-1] if _STEPS else None
+    return _innermost(_STEPS)
 
 
 def implicit_solve(m, d):
     """MJX's `solver.solve(m, d)` in value; its derivative by the implicit function theorem (module docstring).
     Either friction cone (`PhysicsConfig.cone`). Inside a `solution_slot` with a given solution the solver does
     not run: the step takes that solution, with the same derivative."""
-    slot = _SLOTS[-1] if _SLOTS else None
+    slot = _innermost(_SLOTS)
     if slot is not None and slot["given"] is not None:
         a_star, frc, efc = (jax.lax.stop_gradient(x) for x in slot["given"])
     else:

@@ -57,7 +57,7 @@ def _summarise(parts, far: float) -> Dict:
             "tilted_over_30deg": int((tilt > 30).sum()), "end_x_median": float(np.median(end_x))}
 
 
-def run_chen2019(n: int = 16, seed: int = 0, robot: str = "chen2019", duration: float = 16.0, stride: float = 0.05,
+def run_chen2019(n: int = 16, *, seed: int = 0, robot: str = "chen2019", duration: float = 16.0, stride: float = 0.05,
                  phase_time: float = 0.5, fixed_step_heights=(0.08, 0.13), chunk: int = 0, mesh=None,
                  sensor=None, perceive_every: int = 5, progress: bool = False, physics="validated") -> Dict:
     """Planned (SupportPlanController on the true DEM) vs fixed (the Luneckas 2020 tripod at the same stride

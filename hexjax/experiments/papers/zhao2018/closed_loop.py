@@ -115,7 +115,7 @@ def seeded_fields(seed: int, n: int, ap):
     return small_fields(k_field, n, float(ap.robot_radii[0]), float(ap.d_max)), k_box
 
 
-def run_closed_loop(n: int = 32, seed: int = 0, robot: str = "luneckas2020", n_T: int = 2,
+def run_closed_loop(n: int = 32, *, seed: int = 0, robot: str = "luneckas2020", n_T: int = 2,
                     duration: Optional[float] = None, chunk: int = 0, mesh=None, fields: Optional[Fields] = None,
                     blind: bool = False, controller: Optional[AvoidGaitController] = None,
                     progress: bool = False, physics="validated", label: str = "closed loop") -> Dict:

@@ -54,7 +54,7 @@ def _mode_numbers(res: Dict, dt: float, goal_tol: float) -> Dict:
             "wall_s": res["wall_s"], "compile_s": res["compile_s"], "env_steps_per_s": res["env_steps_per_s"]}
 
 
-def run_perception(n: int = 16, seed: int = 0, robot: str = "luneckas2020", sensor: str = "kinect_v1",
+def run_perception(n: int = 16, *, seed: int = 0, robot: str = "luneckas2020", sensor: str = "kinect_v1",
                    n_T: int = 2, cell: float = 0.04, every: int = 5, threshold: float = 0.05,
                    duration=None, chunk: int = 0, modes=MODES, physics="validated", progress: bool = False,
                    **sensor_overrides) -> Dict:
