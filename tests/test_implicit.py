@@ -294,8 +294,8 @@ def test_a_step_reads_nothing_of_the_last_step_outside_grad_fields():
     gradient on high-small, 7-8 min of compile on 2 cores; the check is the stronger, the cause of equality.)"""
     from jax._src.interpreters import partial_eval as pe
 
-    from hexjax.sim.config import SensorConfig
-    from hexjax.sim.step import GRAD_FIELDS, init_acc, make_control_step, settle_steps
+    from hexjax.sim.config import SensorConfig, settle_steps
+    from hexjax.sim.step import GRAD_FIELDS, init_acc, make_control_step
     from hexjax.tune.gradcheck import check_batch, tactile_check_setting
     from hexjax.world.presets import get_terrain
 

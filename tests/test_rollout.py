@@ -11,13 +11,12 @@ from hexjax.control.base import Controller
 from hexjax.control.gait import GaitController
 from hexjax.sim.metrics import goal_errors
 from hexjax.sim.compiled import Compiled
-from hexjax.sim.config import PhysicsConfig, RolloutConfig, SensorConfig
+from hexjax.sim.config import PhysicsConfig, RolloutConfig, SensorConfig, control_steps
 from hexjax.sim.engines import get_engine
 from hexjax.sim.engines.mjx import compiled_rollout
 from hexjax.sim.internals.contacts import contact_geoms
 from hexjax.sim.model import SimModel, mjx
 from hexjax.sim.rollout import make_mesh, rollout
-from hexjax.sim.step import control_steps
 from hexjax.world.presets import get_terrain, luneckas2020
 from hexjax.world.terrain import sample
 

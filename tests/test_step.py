@@ -8,9 +8,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from hexjax.sim.config import PhysicsConfig, RolloutConfig
-from hexjax.sim.step import (StepClock, accumulate, control_steps, fall_state, init_acc, settle_steps, substeps, tilt,
-                             total_physics_steps)
+from hexjax.sim.config import PhysicsConfig, RolloutConfig, control_steps, settle_steps, substeps, total_physics_steps
+from hexjax.sim.step import StepClock, accumulate, fall_state, init_acc, tilt
 
 
 def _q(x, y, z, yaw=0.0, roll=0.0):

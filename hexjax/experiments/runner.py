@@ -28,7 +28,8 @@ def step_bar(desc: str, ctrl_dt: float, duration: float, cfg: RolloutConfig = Ro
     the bar is off: a program without the host callback is kept on disk, `hexjax.sim.compiled`)."""
     from tqdm.auto import tqdm
 
-    from hexjax.sim.step import control_steps, progress_to, settle_steps
+    from hexjax.sim.config import control_steps, settle_steps
+    from hexjax.sim.step import progress_to
     run_cfg = dataclasses.replace(cfg, progress_every=every) if enabled else cfg
     total = settle_steps(cfg, ctrl_dt) + control_steps(duration, ctrl_dt)
     bar = tqdm(total=total, desc=desc, unit="step", disable=not enabled, mininterval=1.0)

@@ -37,11 +37,11 @@ with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.St
     from brax.envs.base import Env, State  # noqa: E402 (brax prints warp notices on import)
 
 from hexjax.control.gait import GaitController, GaitState
-from hexjax.sim.config import PhysicsConfig, RolloutConfig, SensorConfig, physics_for
+from hexjax.sim.config import PhysicsConfig, RolloutConfig, SensorConfig, physics_for, substeps
 from hexjax.sim.engines import sim_model
 from hexjax.sim.model import mjx, read_obs
 from hexjax.sim.perturb import pair_friction_with
-from hexjax.sim.step import env_view, fall_state, physics, substeps
+from hexjax.sim.step import env_view, fall_state, physics
 from hexjax.world.presets import get_robot, get_terrain
 from hexjax.world.terrain import Terrain, sample_one
 

@@ -159,3 +159,27 @@ class RolloutConfig:
             raise ValueError(f"rollout.fall_tilt={self.fall_tilt!r}: must be in (0, pi]")
         if self.grad_clip is not None and not (math.isfinite(self.grad_clip) and self.grad_clip > 0):
             raise ValueError(f"rollout.grad_clip={self.grad_clip!r}: must be None or a finite number > 0")
+
+
+# Step counts of a rollout -------------------------------------------------------------------------------------
+def substeps(physics: PhysicsConfig, ctrl_dt: float) -> int:
+    """Physics steps per control step; the control period must be a whole multiple of the timestep."""
+    n = ctrl_dt / physics.timestep
+    if abs(n - round(n)) > 1e-6 or round(n) < 1:
+        raise ValueError(f"controller.dt={ctrl_dt!r} must be a whole multiple of physics.timestep={physics.timestep!r}")
+    return int(round(n))
+
+
+def settle_steps(cfg: RolloutConfig, ctrl_dt: float) -> int:
+    """Control steps of standing still before the controller starts."""
+    return int(round(cfg.settle_time / ctrl_dt))
+
+
+def control_steps(duration: float, ctrl_dt: float) -> int:
+    """Control steps after settling for a rollout of `duration` s."""
+    return int(math.ceil(duration / ctrl_dt - 1e-9))
+
+
+def total_physics_steps(cfg: RolloutConfig, physics: PhysicsConfig, ctrl_dt: float, n_ctrl: int) -> int:
+    """Physics steps one env takes in a rollout of `n_ctrl` control steps, its settling included."""
+    return (settle_steps(cfg, ctrl_dt) + n_ctrl) * substeps(physics, ctrl_dt)

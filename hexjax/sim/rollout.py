@@ -16,11 +16,10 @@ import numpy as np
 from jax.sharding import Mesh
 
 from hexjax.control.base import Controller
-from hexjax.sim.config import PhysicsConfig, RolloutConfig, SensorConfig
+from hexjax.sim.config import PhysicsConfig, RolloutConfig, SensorConfig, control_steps, total_physics_steps
 from hexjax.sim.engines import GRADIENTS, MESH, RANGE_SENSORS, TRACES, get_engine
 from hexjax.sim.engines.mjx import compiled_rollout, make_mesh, put_global  # noqa: F401 (make_mesh, put_global: API)
 from hexjax.sim.engines.warp import overflow_counts, overflow_line
-from hexjax.sim.step import control_steps, total_physics_steps
 from hexjax.world.robot import RobotSpec
 from hexjax.world.terrain import Terrain
 

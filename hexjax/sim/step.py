@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import math
 from typing import Any, Optional
 
 import jax
@@ -30,7 +29,7 @@ from flax import struct
 from hexjax.perceive import raycast
 from hexjax.sim import perturb
 from hexjax.sim.internals import implicit
-from hexjax.sim.config import PhysicsConfig, RolloutConfig, SensorConfig
+from hexjax.sim.config import RolloutConfig, SensorConfig, substeps
 from hexjax.sim.grad import clip_cotangent, cut_gradient
 from hexjax.sim.model import SimModel, assign_slots, env_model, mjx
 from hexjax.sim.slip import slip
@@ -111,30 +110,6 @@ class Summary:
     tactile_trace: Optional[jax.Array] = None
     foot_slip: Optional[jax.Array] = None
     overflow: Optional[jax.Array] = None
-
-
-# Counts ----------------------------------------------------------------------------------------------------
-def substeps(physics: PhysicsConfig, ctrl_dt: float) -> int:
-    """Physics steps per control step; the control period must be a whole multiple of the timestep."""
-    n = ctrl_dt / physics.timestep
-    if abs(n - round(n)) > 1e-6 or round(n) < 1:
-        raise ValueError(f"controller.dt={ctrl_dt!r} must be a whole multiple of physics.timestep={physics.timestep!r}")
-    return int(round(n))
-
-
-def settle_steps(cfg: RolloutConfig, ctrl_dt: float) -> int:
-    """Control steps of standing still before the controller starts."""
-    return int(round(cfg.settle_time / ctrl_dt))
-
-
-def control_steps(duration: float, ctrl_dt: float) -> int:
-    """Control steps after settling for a rollout of `duration` s."""
-    return int(math.ceil(duration / ctrl_dt - 1e-9))
-
-
-def total_physics_steps(cfg: RolloutConfig, physics: PhysicsConfig, ctrl_dt: float, n_ctrl: int) -> int:
-    """Physics steps one env takes in a rollout of `n_ctrl` control steps, its settling included."""
-    return (settle_steps(cfg, ctrl_dt) + n_ctrl) * substeps(physics, ctrl_dt)
 
 
 # The fall test and the accumulators ------------------------------------------------------------------------

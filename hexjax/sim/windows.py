@@ -37,11 +37,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from hexjax.sim.internals import implicit, solver_context
-from hexjax.sim.config import PhysicsConfig, RolloutConfig, SensorConfig
+from hexjax.sim.config import PhysicsConfig, RolloutConfig, SensorConfig, settle_steps
 from hexjax.sim.engines import sim_model
 from hexjax.sim.rollout import check_static
-from hexjax.sim.step import GRAD_FIELDS, make_control_step, make_env_start, settle_steps, summarise
-
+from hexjax.sim.step import GRAD_FIELDS, make_control_step, make_env_start, summarise
 # accumulators that are running extremes, not sums: a window's end passes their cotangent on only if the
 # extreme at that end is the rollout's final one (no later window moved it)
 _EXTREMES = ("max_tilt", "min_height")

@@ -138,13 +138,12 @@ def load_checkpoint(path: str, like, digest: str):
 
 
 def drive(problem: Problem, out_dir: str, *, method: str, digest: str, state, params_of, advance,
-          n_steps: Optional[int],
-          rollouts_per_step: int, should_eval, resume: bool, progress: bool, time_limit, t_start: float):
+          n_steps: Optional[int], rollouts_per_step: int, should_eval, resume: bool, progress: bool, time_limit,
+          t_start: float):
     """The loop both methods share: resume from out_dir/checkpoint.npz, evaluate the start, then `advance`
     (state, step) -> (state, log fields) up to `n_steps` times (None: until `time_limit` alone) or until
-    `time_limit`, evaluating where
-    `should_eval(step, train_s)` (the method's own seconds so far) and at the end, checkpointing after every step. `params_of(state)` gives the
-    unconstrained params to evaluate."""
+    `time_limit`, evaluating where `should_eval(step, train_s)` (train_s: the method's own seconds so far) and at
+    the end, checkpointing after every step. `params_of(state)` gives the unconstrained params to evaluate."""
     ckpt = os.path.join(out_dir, "checkpoint.npz")
     step, log = 0, []
     if resume and os.path.exists(ckpt):

@@ -101,8 +101,9 @@ def tune_es(cfg: TuneConfig, out_dir: str, rollouts: Optional[int], resume: bool
     """The evosax strategy of `strategy(cfg)` (CMA-ES, sep-CMA-ES or SNES) on the same unconstrained params and
     the same smooth training objective (or, with `es_objective: hard`, the hard form that evaluation uses: an ES
     needs no gradient; `es_rollouts`: where it runs, `population_objective`), with the same terrain stream:
-    generation k evaluates every member of its population on the `train_batch` terrains of step k. It stops after `rollouts` rollouts (population x train_batch per generation), so it
-    can be given exactly the gradient run's budget, or with None at `time_limit` alone. Its starting mean is the hand rules; its step size is
+    generation k evaluates every member of its population on the `train_batch` terrains of step k. It stops after
+    `rollouts` rollouts (population x train_batch per generation), so it can be given exactly the gradient run's
+    budget, or with None at `time_limit` alone. Its starting mean is the hand rules; its step size is
     `cfg.es_sigma` on the unconstrained scale. Held-out evaluations of the mean as for `tune`: where the rollouts
     used cross a multiple of the gradient run's evaluation period, or with `eval_at` (seconds of the method's own
     time: a wall-time race's marks) at the first generation past each mark."""
@@ -133,6 +134,7 @@ def tune_es(cfg: TuneConfig, out_dir: str, rollouts: Optional[int], resume: bool
     should_eval = eval_schedule(pop, cfg.eval_every, eval_at)
     label = f"{name.replace('_', '-')} (pop {pop})"
     return drive(problem, out_dir, method=label, digest=digest, state=es.init(key, u0, es_params),
-                 params_of=es.get_mean, advance=advance, n_steps=None if rollouts is None else max(1, rollouts // (pop * B)),
+                 params_of=es.get_mean, advance=advance,
+                 n_steps=None if rollouts is None else max(1, rollouts // (pop * B)),
                  rollouts_per_step=pop * B, should_eval=should_eval, resume=resume, progress=progress,
                  time_limit=time_limit, t_start=t_start)

@@ -210,7 +210,7 @@ class Problem:
         an env and control step, `hexjax.sim.memory`), before anything is traced. `flag`: the setting named."""
         from hexjax.sim.engines import get_engine
         from hexjax.sim.memory import HEADROOM, check_fits
-        from hexjax.sim.step import control_steps
+        from hexjax.sim.config import control_steps
         engine = get_engine("mjx")  # the one engine the rollout's gradient runs (`rollout_function`)
         n_ctrl = control_steps(self.duration if duration is None else duration, self.train_ctrl.dt)
         per_env = int(HEADROOM * engine.grad_bytes_per_env_step * n_ctrl)
@@ -311,7 +311,8 @@ def _hand_rules(cfg: TuneConfig, robot, smooth: bool):
     # a controller with gates (its entry names their temperature) has a smooth form; an open-loop gait has none
     gates = {} if entry.temperature is None else dict(smooth=smooth, straight_through=smooth and
                                                       cfg.gates == "straight_through")
-    c = make_controller(cfg.controller, robot, gait=cfg.gait, **gates, **{f: getattr(cfg, f) for f in entry.tune_fields})
+    c = make_controller(cfg.controller, robot, gait=cfg.gait, **gates,
+                        **{f: getattr(cfg, f) for f in entry.tune_fields})
     dur = cfg.horizon
     if entry.stops:  # a walk with a planned stop walks `distance`
         c, dur = c.for_distance(cfg.distance)

@@ -34,8 +34,7 @@ from tqdm.auto import tqdm
 
 from hexjax import cache
 from hexjax.sim.compiled import Compiled
-from hexjax.sim.config import GRAD_SOLVERS, RolloutConfig
-from hexjax.sim.step import control_steps, total_physics_steps
+from hexjax.sim.config import GRAD_SOLVERS, RolloutConfig, control_steps, total_physics_steps
 from hexjax.tune.config import BACKWARDS, load_tune_config
 from hexjax.tune.driver import program_digest
 from hexjax.tune.objective import Problem

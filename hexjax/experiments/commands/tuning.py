@@ -157,7 +157,8 @@ def report(res: Dict) -> str:
     rc = res.get("race") or {}
     if rc:
         d = rc["grad_less_start"]
-        lines.append(f"race: the gradient's held-out J less the start's {d['mean']:+.4f} +- {d['se']:.4f} m (paired SE)")
+        lines.append(f"race: the gradient's held-out J less the start's {d['mean']:+.4f} +- {d['se']:.4f} m "
+                     "(paired SE)")
         for a in rc["against"]:
             d = a["grad_less_es"]
             reach = ("never reached in its run" if a["ratio"] is None else

@@ -38,12 +38,12 @@ from mujoco import rollout as mj_rollout
 
 from hexjax.sim import perturb
 from hexjax.sim import step as sim_step  # the phase and summarise on the module: tests/test_step.py watches them
-from hexjax.sim.config import PhysicsConfig, RolloutConfig, SensorConfig
+from hexjax.sim.config import PhysicsConfig, RolloutConfig, SensorConfig, settle_steps, substeps
 from hexjax.sim.engines.base import TRACES, Engine, host_cores
 from hexjax.sim.engines.c_models import _gains, _models, _template
 from hexjax.sim.model import actuator_forces, foot_positions, obs_from_sensordata
 from hexjax.sim.slip import slip
-from hexjax.sim.step import accumulate, init_acc, settle_steps, start_yaw, substeps
+from hexjax.sim.step import accumulate, init_acc, start_yaw
 from hexjax.world.robot import RobotSpec, quat_yaw
 
 

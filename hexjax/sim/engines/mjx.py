@@ -23,11 +23,11 @@ from jax.sharding import PartitionSpec as P
 from hexjax.sim import perturb
 from hexjax.sim import step as sim_step  # summarise on the module: tests/test_step.py watches it
 from hexjax.sim.compiled import Compiled
-from hexjax.sim.config import PhysicsConfig, RolloutConfig, SensorConfig
+from hexjax.sim.config import PhysicsConfig, RolloutConfig, SensorConfig, settle_steps
 from hexjax.sim.engines.base import GRADIENTS, MESH, RANGE_SENSORS, TRACES, Engine
 from hexjax.sim.internals import REMAT_POLICY, check_model, solver_context
 from hexjax.sim.model import built, read_obs
-from hexjax.sim.step import make_control_step, make_env_start, settle_steps, stop_derived
+from hexjax.sim.step import make_control_step, make_env_start, stop_derived
 from hexjax.world.robot import RobotSpec
 
 

@@ -118,7 +118,8 @@ def run_chen2019(n: int = 16, *, seed: int = 0, robot: str = "chen2019", duratio
         comp = 0.0
         with step_bar(f"chen2019 {name}: {n} patches, {duration:g} s", ctrl.dt, duration, cfg,
                       enabled=progress and n <= chunk) as run_cfg:
-            for i in tqdm(range(0, n, chunk), desc=f"chen2019 {name}", unit="chunk", disable=n <= chunk or not progress):
+            for i in tqdm(range(0, n, chunk), desc=f"chen2019 {name}", unit="chunk",
+                          disable=n <= chunk or not progress):
                 sl = lambda x: x[i:i + chunk]
                 prm = jax.tree_util.tree_map(sl, params) if batched else params
                 s, st = rollout(rb, jax.tree_util.tree_map(sl, terrain), ctrl, prm, duration,

@@ -154,10 +154,7 @@ def run_closed_loop(n: int = 32, *, seed: int = 0, robot: str = "luneckas2020", 
     if blind:
         params = params.replace(valid=jnp.zeros_like(params.valid))
     cfg = RolloutConfig(record=True)
-    chunk = chunk or n
-    outs = []
-    t0 = time.perf_counter()
-    compile_s = 0.0
+    chunk, outs, compile_s, t0 = chunk or n, [], 0.0, time.perf_counter()
     with step_bar(f"{label}: {n} fields, {duration:g} s", ctrl.dt, duration, cfg,
                   enabled=progress and n <= chunk) as run_cfg:
         for i in tqdm(range(0, n, chunk), desc=label, unit="chunk", disable=n <= chunk or not progress):
