@@ -189,23 +189,25 @@ def test_a_shipped_es_preset_records_the_run_of_its_config(config, preset):
 def test_shipped_params_presets_load_by_name_into_their_controller():
     """Every configs/params/*.yaml (tuned params, `hexjax tune`'s params.yaml) loads by name and sets its
     controller's params to its values; each says how it was judged (held-out objective on validated physics)."""
+    import jax
     import numpy as np
 
-    from hexjax.control.cpg import CPGController
-    from hexjax.control.tactile import TactileGaitController
+    from hexjax.control.registry import CONTROLLERS, make_controller
     from hexjax.tune.space import load_values, with_values
 
     names = preset_names("params")
     assert names, "no params preset shipped"
     for name in names:
         doc = read_yaml(resolve("params", name))
-        if doc["controller"] == "tactile":
-            p0 = TactileGaitController(get_robot("luneckas2020"), gait=doc["gait"]).default_params()
-        else:
-            p0 = CPGController(get_robot("yu2019"), gait=doc["gait"]).default_params()
+        robot = get_robot(CONTROLLERS[doc["controller"]].robot)
+        p0 = make_controller(doc["controller"], robot, gait=doc["gait"]).default_params()
         p = with_values(p0, load_values(name))
-        for k, v in doc["values"].items():
-            np.testing.assert_allclose(np.asarray(getattr(p, k)), np.asarray(v, np.float32), rtol=1e-6, err_msg=name)
+        for k, v in doc["values"].items():  # a field, or a tree of them (a reflex layer's weights)
+            got = jax.tree_util.tree_leaves(getattr(p, k))
+            want = jax.tree_util.tree_leaves(jax.tree_util.tree_map(np.asarray, v, is_leaf=lambda x: isinstance(x, list)))
+            assert len(got) == len(want), name
+            for got, want in zip(got, want):
+                np.testing.assert_allclose(np.asarray(got), np.asarray(want, np.float32), rtol=1e-6, err_msg=name)
         made = doc["made_by"]
         assert made["eval_physics"] == "validated", name
         assert made["held_out_objective"] <= made["start_held_out_objective"], name

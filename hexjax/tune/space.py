@@ -252,9 +252,10 @@ PER_LEG: Dict[str, Dict[str, Bound]] = {
 # names them (`base.lc_trim`, ...)
 SPACES["cpg-reflex"] = {"net": Free()}
 PER_LEG["cpg-reflex"] = {f"base.{k}": b for k, b in {**SPACES["cpg"], **PER_LEG["cpg"]}.items()}
-# and over the Luneckas 2020 open-loop gait: its weights, and the gait's basic step where a config names it
+# and over the Luneckas 2020 open-loop gait: its weights, and the gait's stroke and swing height where a config
+# names them (not its swing time: the walk's length is set from the gait's own pace)
 SPACES["gait-reflex"] = {"net": Free()}
-PER_LEG["gait-reflex"] = {f"base.{k}": SPACES["tactile"][k] for k in ("step_length", "step_height", "swing_time")}
+PER_LEG["gait-reflex"] = {f"base.{k}": SPACES["tactile"][k] for k in ("step_length", "step_height")}
 
 
 def make_space(controller: str, overrides: Optional[Mapping[str, Mapping[str, float]]] = None,
