@@ -204,7 +204,8 @@ def test_shipped_params_presets_load_by_name_into_their_controller():
         p = with_values(p0, load_values(name))
         for k, v in doc["values"].items():  # a field, or a tree of them (a reflex layer's weights)
             got = jax.tree_util.tree_leaves(getattr(p, k))
-            want = jax.tree_util.tree_leaves(jax.tree_util.tree_map(np.asarray, v, is_leaf=lambda x: isinstance(x, list)))
+            arrays = jax.tree_util.tree_map(np.asarray, v, is_leaf=lambda x: isinstance(x, list))
+            want = jax.tree_util.tree_leaves(arrays)
             assert len(got) == len(want), name
             for got, want in zip(got, want):
                 np.testing.assert_allclose(np.asarray(got), np.asarray(want, np.float32), rtol=1e-6, err_msg=name)
