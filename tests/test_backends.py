@@ -230,3 +230,20 @@ def test_warp_overflow_bits_are_mujoco_warps():
     from hexjax.sim.internals.contacts import OVERFLOW_ITERATIONS, OVERFLOW_LS_ITERATIONS
     assert (OVERFLOW_ITERATIONS, OVERFLOW_LS_ITERATIONS) == (int(OverflowType.ITERATIONS),
                                                             int(OverflowType.LS_ITERATIONS))
+
+
+def test_warp_limit_lines_can_be_summed_by_the_caller_instead(capsys):
+    """A MuJoCo Warp rollout whose envs hit its solver's limits says so in one stderr line; a caller that rolls out
+    many times (the evolution strategy on Warp) turns the line off and reads the counts from the stats. One Newton
+    iteration and one line-search step, so that the limits are hit."""
+    _warp()
+    import dataclasses
+    tight = dataclasses.replace(PHYSICS, iterations=1, ls_iterations=1)
+    two = jax.tree_util.tree_map(lambda x: x[:2], TERRAIN)
+    walk = lambda **kw: rollout(ROBOT, two, CTRL, CTRL.default_params(), 0.5, jax.random.PRNGKey(1), physics=tight,
+                                engine="warp", stats=True, **kw)
+    _, st = walk(say_limits=False)
+    assert "MuJoCo Warp:" not in capsys.readouterr().err
+    assert st.overflow["envs"] == 2 and st.overflow["iteration_limit"] + st.overflow["line_search_limit"] > 0
+    walk()
+    assert "MuJoCo Warp:" in capsys.readouterr().err

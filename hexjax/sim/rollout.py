@@ -105,7 +105,7 @@ def rollout(robot: RobotSpec, terrain: Terrain, controller: Controller, params, 
             physics=None, sensors: SensorConfig = SensorConfig(),
             config: RolloutConfig = RolloutConfig(), params_batched: bool = False,
             mesh: Optional[Mesh] = None, engine: Optional[str] = None, nthread: Optional[int] = None,
-            stats: bool = False, perturbation=None):
+            stats: bool = False, perturbation=None, say_limits: bool = True):
     """Roll out a batch of hexapods, one per terrain of `terrain` (leading axis B).
 
     physics: the physics a command chose (`hexjax.sim.physics.pick`: a `Physics`), a physics preset (its name, a
@@ -134,7 +134,8 @@ def rollout(robot: RobotSpec, terrain: Terrain, controller: Controller, params, 
     `hexjax.world.randomization.Perturbation` (leading axis B, from `sample_perturbation`): per-env dynamics,
     sensing and faults, applied in every control step (`hexjax.sim.perturb`; every engine: on 'c' the model
     fields are set in each env's MjModel). Returns a `Summary` with leading axis B, or (Summary, RolloutStats)
-    with `stats`. A MuJoCo Warp rollout whose envs hit its limits prints one line saying how many (stderr).
+    with `stats`. A MuJoCo Warp rollout whose envs hit its limits prints one line saying how many (stderr), unless
+    `say_limits` is False (a caller that sums them over many rollouts: `RolloutStats.overflow` holds them).
     All inputs are checked on the host before anything is traced."""
     t0 = time.perf_counter()
     physics, eng = resolve_physics(physics, engine, terrain, controller, config, mesh)
@@ -155,7 +156,7 @@ def rollout(robot: RobotSpec, terrain: Terrain, controller: Controller, params, 
                                          sensors=sensors, config=config, params_batched=params_batched, mesh=mesh,
                                          nthread=nthread, perturbation=perturbation)
     counts = overflow_counts(out.overflow, physics)
-    if counts and (counts["line_search_limit"] or counts["iteration_limit"] or counts["other"]):
+    if say_limits and counts and (counts["line_search_limit"] or counts["iteration_limit"] or counts["other"]):
         print(overflow_line(counts), file=sys.stderr, flush=True)
     if not stats:
         return out

@@ -17,6 +17,7 @@ from hexjax.tune.objective import Problem, per_env_objective
 
 
 STRATEGIES = {"cma_es": CMA_ES, "sep_cma_es": Sep_CMA_ES, "snes": SNES}
+LIMIT_KEYS = ("envs", "line_search_limit", "iteration_limit", "other")  # MuJoCo Warp's, summed over generations
 
 
 def strategy(cfg: TuneConfig, u0) -> str:
@@ -64,9 +65,10 @@ def population_objective(problem: Problem, pop: int, batch: int):
             pop_u = jax.tree_util.tree_map(
                 lambda x, x0: jnp.where(ok.reshape((pop,) + (1,) * (x.ndim - 1)), x, x0), pop_u, u_start)
             s = problem.certified_rollout(member_params(pop_u), jax.tree_util.tree_map(tile, terr), tile(keys),
-                                          params_batched=True)
+                                          params_batched=True, limits=certified.limits)
             fit = per_env_objective(s, cfg.distance, cfg.objective).reshape(pop, batch).mean(1)
             return jnp.where(ok, fit, jnp.inf)
+        certified.limits = []  # MuJoCo Warp's limit counts, one per generation: the tuner logs them, not a line each
         return certified
 
     model, fn = (problem.hard_rollout(params_batched=True) if hard else
@@ -128,13 +130,25 @@ def tune_es(cfg: TuneConfig, out_dir: str, rollouts: Optional[int], resume: bool
         fit = pop_loss(pop_u, terr, keys)
         fit = jnp.where(jnp.isfinite(fit), fit, jnp.max(jnp.where(jnp.isfinite(fit), fit, 0.0)) + 1.0)
         state, _ = es.tell(k_tell, pop_u, fit, state, es_params)
-        return state, {"train_objective": float(jnp.mean(fit)), "best_in_generation": float(jnp.min(fit))}
+        fields = {"train_objective": float(jnp.mean(fit)), "best_in_generation": float(jnp.min(fit))}
+        limits = getattr(pop_loss, "limits", None)
+        if limits and limits[-1]:  # MuJoCo Warp's: how many of the generation's walks hit its solver's limits
+            fields["warp_limits"] = {k: limits[-1][k] for k in LIMIT_KEYS}
+        return state, fields
 
     # evaluate whenever the rollouts used cross a multiple of the gradient run's evaluation period
     should_eval = eval_schedule(pop, cfg.eval_every, eval_at)
     label = f"{name.replace('_', '-')} (pop {pop})"
-    return drive(problem, out_dir, method=label, digest=digest, state=es.init(key, u0, es_params),
-                 params_of=es.get_mean, advance=advance,
-                 n_steps=None if rollouts is None else max(1, rollouts // (pop * B)),
-                 rollouts_per_step=pop * B, should_eval=should_eval, resume=resume, progress=progress,
-                 time_limit=time_limit, t_start=t_start)
+    res = drive(problem, out_dir, method=label, digest=digest, state=es.init(key, u0, es_params),
+                params_of=es.get_mean, advance=advance,
+                n_steps=None if rollouts is None else max(1, rollouts // (pop * B)),
+                rollouts_per_step=pop * B, should_eval=should_eval, resume=resume, progress=progress,
+                time_limit=time_limit, t_start=t_start)
+    hit = [e["warp_limits"] for e in res["log"] if "warp_limits" in e]
+    if hit:  # one line for the run instead of one a generation
+        total = {k: sum(h[k] for h in hit) for k in LIMIT_KEYS}
+        print(f"MuJoCo Warp over {len(hit)} generations: {total['line_search_limit']:,} of {total['envs']:,} walks "
+              f"ended a line search at its limit, {total['iteration_limit']:,} a Newton solve at its limit"
+              + (f", {total['other']:,} overflowed a pool" if total["other"] else "") + " (each generation's in "
+              "log.json, warp_limits)")
+    return res

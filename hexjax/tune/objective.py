@@ -152,15 +152,21 @@ class Problem:
             return None, lambda model, params, terr, keys: self.certified_rollout(params, terr, keys)
         return rollout_function(self.robot, self.eval_ctrl, self.duration, physics=self.eval_physics(), kept=True)
 
-    def certified_rollout(self, params, terr, keys, params_batched: bool = False):
+    def certified_rollout(self, params, terr, keys, params_batched: bool = False, limits: Optional[list] = None):
         """The hard rollout of `params` (the eval form's, shared or batched over the envs) on `eval_physics`, on the
         fastest engine certified for it on this host (`hexjax.sim.physics.pick`: MuJoCo Warp on a GPU, MuJoCo C
-        on a CPU): the evaluation every command judges by. Returns the `Summary`."""
+        on a CPU): the evaluation every command judges by. Returns the `Summary`. With `limits` (a list) MuJoCo
+        Warp's limit counts are appended to it instead of printed."""
         from hexjax.sim.physics import pick, shared_config
         from hexjax.sim.rollout import rollout
         phys = pick(self.cfg.eval_physics)  # the engine and the settings certified on it
-        return rollout(self.robot, terr, self.eval_ctrl, params, self.duration, keys,
-                       physics=shared_config(phys, self.specs), engine=phys.engine.name, params_batched=params_batched)
+        out = rollout(self.robot, terr, self.eval_ctrl, params, self.duration, keys,
+                      physics=shared_config(phys, self.specs), engine=phys.engine.name, params_batched=params_batched,
+                      stats=limits is not None, say_limits=limits is None)
+        if limits is None:
+            return out
+        limits.append(out[1].overflow)
+        return out[0]
 
     def static(self, role: str, digest: str) -> tuple:
         """What a tuner's compiled function is made from, to key its kept program (`hexjax.sim.compiled`): the
