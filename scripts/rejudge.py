@@ -3,12 +3,13 @@ returned iterate (with --all, every evaluated iterate) on the config's held-out 
 its eval physics. For a race judged on few terrains, whether a method's gain is larger than the set's noise.
 
     python scripts/rejudge.py --config cpg_legs --set held_out_batch=160 out/a/log.json out/b/log.json
-        [--labels SGD,CMA-ES] [--all | --steps 8,12] [--json docs/results/x.json]
+        [--labels SGD,CMA-ES] [--all | --steps 8,12] [--training-physics] [--json docs/results/x.json]
 
 The held-out terrains come from the config's seed as in a tuning run (`Problem.eval_batch`), so a batch of n
 is the set a run with held_out_batch n would have been judged on. Prints a line per iterate with the standard
 error of its per-terrain objective and of its paired difference from the start (the same terrains), and writes
-the figures, per terrain too, as JSON."""
+the figures, per terrain too, as JSON. With --training-physics the iterates are judged on the solver the gradient
+trained on (MJX) instead: what the tuner saw, against what it is judged on."""
 
 import argparse
 import json
@@ -27,6 +28,8 @@ ap.add_argument("--all", action="store_true", help="every evaluated iterate, not
 ap.add_argument("--steps", default="", help="comma-separated iterates to judge as well (e.g. 8,12)")
 ap.add_argument("--reuse", default="", help="an earlier --json of the same config and batch: its iterates are not "
                                             "rolled out again")
+ap.add_argument("--training-physics", action="store_true",
+                help="judge on the config's training solver (MJX) instead of its eval physics")
 ap.add_argument("--json", default="")
 a = ap.parse_args()
 
@@ -56,15 +59,23 @@ from hexjax.tune.objective import Problem, evaluate_held_out  # noqa: E402
 from hexjax.tune.space import with_values  # noqa: E402
 
 problem = Problem.build(cfg)
-model, fn = problem.eval_rollout()
+if a.training_physics:
+    import dataclasses
+
+    from hexjax.sim.rollout import rollout_function
+    model, fn = rollout_function(problem.robot, problem.eval_ctrl, problem.duration, physics=problem.physics(),
+                                 kept=True)
+    judged_on = {"name": "the training solver", "engine": "mjx", **dataclasses.asdict(problem.physics())}
+else:
+    model, fn = problem.eval_rollout()
+    judged_on = pick(cfg.eval_physics, needs=() if cfg.eval_engine == "certified" else {GRADIENTS}).record()
 
 
 seen = {}  # params already judged (runs from one start judge it once), by their JSON
 if a.reuse:
     with open(a.reuse) as f:
         prev = json.load(f)
-    if (prev["config"], prev["held_out_batch"], prev["physics"]) != (a.config, cfg.held_out_batch,
-                                                                      pick(cfg.eval_physics, needs={GRADIENTS}).record()):
+    if (prev["config"], prev["held_out_batch"], prev["physics"]) != (a.config, cfg.held_out_batch, judged_on):
         raise SystemExit(f"--reuse {a.reuse}: judged {prev['config']} on {prev['held_out_batch']} terrains, not "
                          f"{a.config} on {cfg.held_out_batch}, or on other physics")
     for pr in prev["runs"]:
@@ -93,9 +104,8 @@ def _judge(params):
             "stderr": float(j.std(ddof=1) / np.sqrt(len(j)))}
 
 
-print(f"{cfg.held_out_batch} held-out terrains of {a.config} on {cfg.eval_physics}")
-out = {"config": a.config, "sets": a.set, "held_out_batch": cfg.held_out_batch,
-       "physics": pick(cfg.eval_physics, needs={GRADIENTS}).record(), "runs": []}
+print(f"{cfg.held_out_batch} held-out terrains of {a.config} on {judged_on['name']} ({judged_on['engine']})")
+out = {"config": a.config, "sets": a.set, "held_out_batch": cfg.held_out_batch, "physics": judged_on, "runs": []}
 for label, path, r in runs:
     steps = [e for e in r["log"] if "held_out" in e]
     if not a.all:
