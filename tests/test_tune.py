@@ -340,10 +340,11 @@ def test_an_equal_wall_race_reads_its_ratio_and_paired_errors_from_the_logs():
     from hexjax.experiments.commands.tuning import race
     from hexjax.tune.es import eval_schedule
     due = eval_schedule(8, 4, eval_at=[10.0, 20.0])
-    assert [due(g, t) for g, t in enumerate([3.0, 9.9, 10.1, 12.0, 25.0, 26.0], 1)] == [False, False, True, False,
-                                                                                        True, False]
+    times = [1.0, 3.0, 9.9, 10.1, 12.0, 25.0, 26.0]  # the strategy's own seconds after each generation
+    assert [due(g, now, before) for g, (before, now) in enumerate(zip(times, times[1:]), 1)] == \
+        [False, False, True, False, True, False]
     by_rollouts = eval_schedule(8, 16)  # one evaluation every 2 generations of 8 members = 16 gradient steps
-    assert [by_rollouts(g, 0.0) for g in range(1, 5)] == [False, True, False, True]
+    assert [by_rollouts(g, 0.0, 0.0) for g in range(1, 5)] == [False, True, False, True]
 
     def ev(j, t):
         return {"train_s": t, "wall_s": t, "held_out": {"objective": float(np.mean(j)), "per_env_objective": j}}

@@ -142,8 +142,9 @@ def drive(problem: Problem, out_dir: str, *, method: str, digest: str, state, pa
           t_start: float):
     """The loop both methods share: resume from out_dir/checkpoint.npz, evaluate the start, then `advance`
     (state, step) -> (state, log fields) up to `n_steps` times (None: until `time_limit` alone) or until
-    `time_limit`, evaluating where `should_eval(step, train_s)` (train_s: the method's own seconds so far) and at
-    the end, checkpointing after every step. `params_of(state)` gives the unconstrained params to evaluate."""
+    `time_limit`, evaluating where `should_eval(step, train_s, train_s_before)` (the method's own seconds now and
+    at the step before) and at the end, checkpointing after every step. `params_of(state)` gives the
+    unconstrained params to evaluate."""
     ckpt = os.path.join(out_dir, "checkpoint.npz")
     step, log = 0, []
     if resume and os.path.exists(ckpt):
@@ -179,7 +180,7 @@ def drive(problem: Problem, out_dir: str, *, method: str, digest: str, state, pa
         u = params_of(state)
         entry = {"step": step, "rollouts": step * rollouts_per_step, **fields,
                  "params": _jsonable(problem.space.physical(u))}
-        if should_eval(step, times()["train_s"]) or step == n_steps:
+        if should_eval(step, times()["train_s"], log[-1]["train_s"]) or step == n_steps:
             entry.update(evaluate(u))
         entry.update(times())
         log.append(entry)

@@ -83,19 +83,12 @@ def population_objective(problem: Problem, pop: int, batch: int):
 
 
 def eval_schedule(pop: int, eval_every: int, eval_at: Optional[Sequence[float]] = None):
-    """should_eval(generation, train_s) of `tune_es`: where the rollouts used cross a multiple of the gradient
-    run's evaluation period (`eval_every` steps of the same batch: every eval_every / pop generations), or with
-    `eval_at` at the first generation whose own seconds pass each mark (a resumed run may evaluate once early)."""
+    """should_eval(generation, train_s, train_s_before) of `tune_es`: where the rollouts used cross a multiple of
+    the gradient run's evaluation period (`eval_every` steps of the same batch: every eval_every / pop
+    generations), or with `eval_at` at the generation whose own seconds pass one of those marks."""
     if eval_at is None:
-        return lambda gen, _: (gen * pop) // eval_every > ((gen - 1) * pop) // eval_every
-    marks = sorted(eval_at)
-    passed = {"n": 0}
-
-    def should_eval(gen, train_s):
-        n = sum(1 for m in marks if m <= train_s)
-        due, passed["n"] = n > passed["n"], n
-        return due
-    return should_eval
+        return lambda gen, *_: (gen * pop) // eval_every > ((gen - 1) * pop) // eval_every
+    return lambda gen, now, before: any(before < m <= now for m in eval_at)
 
 
 def tune_es(cfg: TuneConfig, out_dir: str, rollouts: Optional[int], resume: bool = True, progress: bool = True,

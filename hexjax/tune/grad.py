@@ -96,5 +96,5 @@ def tune(cfg: TuneConfig, out_dir: str, resume: bool = True, progress: bool = Tr
     state0 = (u0, opt.init(u0)) + ((u0,) if beta else ())
     return drive(problem, out_dir, method=cfg.estimator.replace("first_order", "grad"), digest=digest, state=state0,
                  params_of=lambda st: st[-1] if beta else st[0], advance=advance, n_steps=cfg.steps,
-                 rollouts_per_step=per_step, should_eval=lambda step, _: step % cfg.eval_every == 0, resume=resume,
+                 rollouts_per_step=per_step, should_eval=lambda step, *_: step % cfg.eval_every == 0, resume=resume,
                  progress=progress, time_limit=time_limit, t_start=t_start)
