@@ -180,7 +180,7 @@ def drive(problem: Problem, out_dir: str, *, method: str, digest: str, state, pa
         u = params_of(state)
         entry = {"step": step, "rollouts": step * rollouts_per_step, **fields,
                  "params": _jsonable(problem.space.physical(u))}
-        if should_eval(step, times()["train_s"], log[-1]["train_s"]) or step == n_steps:
+        if should_eval(step, times()["train_s"], log[-1].get("train_s", log[-1]["wall_s"])) or step == n_steps:
             entry.update(evaluate(u))
         entry.update(times())
         log.append(entry)
