@@ -20,6 +20,10 @@ from hexjax.control.gates import hard_gate, sigmoid_gate
 from hexjax.control.vdp import NetworkParams, locked_state
 from hexjax.world.robot import N_LEGS, RobotSpec, leg_fk, leg_ik, leg_to_body
 
+# what the event blocks of a step may change; with the `feedback` param off the step keeps them as they were
+FEEDBACK_FIELDS = ("z", "swing", "elev_on", "elev", "offset", "hold", "hold_q", "kept", "level", "searched", "paused",
+                   "depth", "n_found", "search", "n_elev")
+
 
 @dataclasses.dataclass(frozen=True)
 class CPGController(StepBlocks, Controller):
@@ -161,14 +165,12 @@ class CPGController(StepBlocks, Controller):
         """One control period: the contact neurons, the event FSM and the reflexes on the feedback path (selected
         by the `feedback` param), the network's RK4 step, the converter; blocks in `hexjax.control.cpg.fsm`."""
         v = self._sense(p, s, obs)
-        before = (v.z, v.swing, v.elev_on, v.elev, v.offset, v.hold, v.hold_q, v.kept, v.level, v.searched, v.paused,
-                  v.depth, v.n_found, v.search, v.n_elev)
+        before = tuple(getattr(v, n) for n in FEEDBACK_FIELDS)
         for block in (self._release, self._found, self._elevator, self._early_touchdown, self._pause):
             block(p, s, obs, v)
-        (v.z, v.swing, v.elev_on, v.elev, v.offset, v.hold, v.hold_q, v.kept, v.level, v.searched, v.paused, v.depth,
-         v.n_found, v.search, v.n_elev) = v.pick((v.z, v.swing, v.elev_on, v.elev, v.offset, v.hold, v.hold_q, v.kept,
-                                                 v.level, v.searched, v.paused, v.depth, v.n_found, v.search,
-                                                 v.n_elev), before)
+        after = v.pick(tuple(getattr(v, n) for n in FEEDBACK_FIELDS), before)  # the feedback path, or none of it
+        for n, x in zip(FEEDBACK_FIELDS, after):
+            setattr(v, n, x)
         self._integrate(p, s, obs, v)
         self._end_of_phase(p, s, obs, v)
         q_free = v.search[:, None] * v.q_search + (1.0 - v.search[:, None]) * v.q_lc
