@@ -53,8 +53,6 @@ for i, path in enumerate(a.logs):
 
 import numpy as np  # noqa: E402
 
-from hexjax.sim.engines import GRADIENTS  # noqa: E402
-from hexjax.sim.physics import pick  # noqa: E402
 from hexjax.tune.objective import Problem, evaluate_held_out  # noqa: E402
 from hexjax.tune.space import with_values  # noqa: E402
 
@@ -68,7 +66,7 @@ if a.training_physics:
     judged_on = {"name": "the training solver", "engine": "mjx", **dataclasses.asdict(problem.physics())}
 else:
     model, fn = problem.eval_rollout()
-    judged_on = pick(cfg.eval_physics, needs=() if cfg.eval_engine == "certified" else {GRADIENTS}).record()
+    judged_on = cfg.judge().record()
 
 
 seen = {}  # params already judged (runs from one start judge it once), by their JSON

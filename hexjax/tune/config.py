@@ -143,7 +143,7 @@ class TuneConfig:
 
     def _check_data(self) -> None:
         """The walks: controller and gait, terrains, batches, steps, the start, distance and horizon."""
-        from hexjax.control.registry import CONTROLLERS
+        from hexjax.control.registry import CONTROLLERS, paper_controller
         if self.controller not in CONTROLLERS:
             raise ValueError(f"controller={self.controller!r}: use one of {', '.join(CONTROLLERS)}")
         t = self.terrain
@@ -168,13 +168,11 @@ class TuneConfig:
                 load_values(self.start)
             except ValueError as err:
                 raise ValueError(f"tune.start={self.start!r}: {err}") from None
-        from hexjax.control.registry import CONTROLLERS, paper_controller
-        gaits = CONTROLLERS[self.controller].gaits if self.controller in CONTROLLERS else None  # else: space()
-        paper = CONTROLLERS.get(paper_controller(self.controller))
-        if self.temperature is not None and paper is not None and paper.temperature is None:
+        if self.temperature is not None and CONTROLLERS[paper_controller(self.controller)].temperature is None:
             raise ValueError(f"tune.temperature={self.temperature!r}: the {self.controller} controller has no smooth "
                              "gate to set it on; leave it out")
-        if gaits is not None and self.gait not in gaits:
+        gaits = CONTROLLERS[self.controller].gaits
+        if self.gait not in gaits:
             raise ValueError(f"tune.gait={self.gait!r}: the {self.controller} controller walks "
                              + " or ".join(map(repr, gaits)))
         self._whole("validation_batch", least=0)
@@ -275,6 +273,13 @@ class TuneConfig:
         `terrain_overrides` apply."""
         from hexjax.world.presets import get_terrain  # JAX loads here: a config's first checks answer without it
         return get_terrain(name, **{"length": self.distance + 0.3, **self.terrain_overrides})
+
+    def judge(self):
+        """The `Physics` the held-out and validation terrains are judged on (`eval_engine`): `eval_physics` on MJX,
+        the gradient's engine, whose program is kept, or on the fastest engine certified for it on this host."""
+        from hexjax.sim.engines import GRADIENTS
+        from hexjax.sim.physics import pick
+        return pick(self.eval_physics, needs=() if self.eval_engine == "certified" else {GRADIENTS})
 
     def space(self) -> ParamSpace:
         from hexjax.tune.space import make_space

@@ -113,13 +113,10 @@ def run(o, entry) -> Dict:
         runs.append(tune_es(cfg, os.path.join(out, "es_wall"), rollouts=None, resume=not o.restart, time_limit=wall,
                             eval_at=marks))
         runs[-1]["method"] += ", same wall time"
-    from hexjax.sim.engines import GRADIENTS
-    from hexjax.sim.physics import pick
     import jax
     dev = jax.devices()[0]
     res = {"config": o.config, "out": out, "total_wall_s": time.perf_counter() - t0, "runs": [_row(r) for r in runs],
-           # the judge: MJX's kept program, or the host's certified engine (`eval_engine`)
-           "physics": pick(cfg.eval_physics, needs=() if cfg.eval_engine == "certified" else {GRADIENTS}).record(),
+           "physics": cfg.judge().record(),  # the judge: MJX's kept program, or the host's certified engine
            "device": f"{dev.platform}:{getattr(dev, 'device_kind', '')}"}
     if len(runs) > 1 and runs[0]["method"] in ("grad", "hybrid"):
         res["race"] = race(runs)
