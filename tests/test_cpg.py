@@ -298,6 +298,13 @@ def test_bad_params_raise_before_tracing():
         CPGController(ROBOT, gait="gallop")
     with pytest.raises(ValueError, match="cpg.stance_radial"):
         CPGController(ROBOT, stance_radial=-0.1)
+    # a batch of params (an evolution strategy's population on its terrains): one short line naming the first
+    # offending member, not every value
+    batch = p.replace(clearance=jnp.full(512, 0.05), elevated_clearance=jnp.full(512, 0.06).at[300].set(0.04))
+    with pytest.raises(ValueError) as err:
+        ctrl.validate_params(batch)
+    msg = str(err.value)
+    assert msg == "cpg.elevated_clearance=0.04 at (300,) (shape (512,)): must be >= clearance=0.05 at (300,) (shape (512,))"
 
 
 def test_each_leg_has_its_own_converter_clearance_and_thresholds():
