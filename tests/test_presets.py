@@ -153,6 +153,18 @@ DERIVED_TUNE_CONFIGS = {
     "tactile_tripod_es": ("tactile_tripod", {
         "train_physics": "validated", "held_out_batch": 64, "validation_batch": 32, "steps": 48, "eval_every": 48}),
     "tactile_tripod_forward": ("tactile_tripod", {"backward": "forward", "solver_grad": "implicit", "grad_clip": None}),
+    # the races of docs/tuning.md, "The race on one GPU": a GPU's batch, judged on the host's certified engine
+    "cpg_reflex_grad_gpu": ("cpg_reflex_grad", {
+        "train_batch": 64, "held_out_batch": 320, "validation_batch": 160, "eval_every": 4}),
+    "cpg_legs_gpu": ("cpg_legs", {
+        "train_batch": 64, "held_out_batch": 320, "validation_batch": 160, "es_rollouts": "certified",
+        "eval_engine": "certified"}),
+    # the layer's gradient trained on validated, by SGD in steps as long as the gradient holds for
+    "cpg_reflex_grad_validated": ("cpg_reflex_grad", {
+        "train_physics": "validated", "solver_iterations": None, "eval_every": 4,
+        "optimizer": {"name": "sgd", "learning_rate": 0.05}}),
+    "cpg_reflex_grad_validated_gpu": ("cpg_reflex_grad_gpu", {
+        "train_physics": "validated", "solver_iterations": None, "optimizer": {"name": "sgd", "learning_rate": 0.05}}),
 }
 
 

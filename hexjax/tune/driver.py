@@ -304,7 +304,7 @@ def compare_plot(rows, path: str) -> None:
         line, = ax.plot(*zip(*r["curve"]), "o-", label=r["method"])
         t, j, se = zip(*r["curve_s"])
         bx.errorbar(t, j, yerr=[np.nan if e is None else e for e in se], fmt="o-", color=line.get_color(), capsize=2)
-    ax.set_xscale("symlog", linthresh=8)
+    ax.set_xscale("symlog", linthresh=10)  # 0 (the start) on the axis, decades from 10 on
     ax.set_xlabel("rollouts used")
     ax.set_ylabel("held-out objective J (m, hard mode)")
     bx.set_xlabel("seconds of the method's own time (compile included)")
