@@ -289,3 +289,8 @@ def test_the_long_silent_commands_show_their_walks_progress(capsys):
     for name in ("planned", "fixed_h8cm", "fixed_h13cm"):
         assert f"chen2019 {name}: 1 patches, 0.5 s" in err, err[-2000:]
     assert "step/s" in err
+    # yu2019-step walks its six rows as one rollout: a bar over its control steps, not over rows that all end at
+    # once (90 s of walking at 1,024 terrains a row is most of an hour on 2 CPU cores)
+    assert main(["experiment", "yu2019-step", "--batch", "1", "--duration", "0.5", "--engine", "c"]) == 0
+    err = capsys.readouterr().err
+    assert "yu2019-step: 6 rows x 1 envs, 0.5 s" in err and "step/s" in err, err[-2000:]

@@ -14,13 +14,13 @@ from typing import Dict, Mapping, Optional
 import jax
 import jax.numpy as jnp
 import numpy as np
-from tqdm.auto import tqdm
 
 from hexjax.control.cpg import MODE_NAMES, TRIPOD_GROUP, CPGController
 from hexjax.control.reflex import ReflexController
 from hexjax.control.registry import make_controller
 from hexjax.sim.metrics import paired
 from hexjax.experiments.registry import experiment
+from hexjax.experiments.runner import step_bar
 from hexjax.sim.config import RolloutConfig
 from hexjax.sim.engines import TRACES
 from hexjax.sim.physics import pick, shared_config
@@ -199,17 +199,16 @@ def run_experiment(name: str, batch: int = 32, seed: int = 0, duration: Optional
         shapes = tuple(np.shape(a) for a in jax.tree_util.tree_leaves(sampled[t]))
         groups.setdefault(shapes, []).append(i)
     summaries = {}
-    bar = tqdm(total=len(rows), desc=name, disable=not progress)
     for idx in groups.values():
         params_rows = [with_values(ctrl.default_params(**{k: float(v) for k, v in rows[i][2].items()}), params or {})
                        for i in idx]
         terrain, p, keys = paired_rows([sampled[rows[i][0]] for i in idx], params_rows, batch, seed)
-        bar.set_postfix_str(", ".join(f"{rows[i][0]} / {rows[i][1]}" for i in idx))
-        s, st = rollout(robot, terrain, ctrl, p, dur, keys,
-                        physics=shared_config(preset, [specs[rows[i][0]] for i in idx]), engine=preset.engine.name,
-                        # the step's success and the ditch floor read the foot traces
-                        config=RolloutConfig(record=True),
-                        params_batched=True, stats=True)
+        # a bar over the walk's control steps: one rollout holds every row of the group (minutes on a CPU)
+        with step_bar(f"{name}: {len(idx)} rows x {batch} envs, {dur:g} s", ctrl.dt, dur,
+                      RolloutConfig(record=True), enabled=progress) as cfg:  # the foot traces: step, ditch floor
+            s, st = rollout(robot, terrain, ctrl, p, dur, keys,
+                            physics=shared_config(preset, [specs[rows[i][0]] for i in idx]),
+                            engine=preset.engine.name, config=cfg, params_batched=True, stats=True)
         if isinstance(ctrl, ReflexController):  # the CPG's own state under its learned reflex layer
             s = s.replace(final_state=s.final_state.base)
         out["timing"].append({"rows": [f"{rows[i][0]} / {rows[i][1]}" for i in idx], "envs": batch * len(idx),
@@ -217,8 +216,6 @@ def run_experiment(name: str, batch: int = 32, seed: int = 0, duration: Optional
         for j, i in enumerate(idx):
             part = slice(j * batch, (j + 1) * batch)
             summaries[i] = (jax.tree_util.tree_map(lambda a: a[part], s), sampled[rows[i][0]])
-        bar.update(len(idx))
-    bar.close()
     for i, (terrain_name, label, _) in enumerate(rows):
         s, terrain = summaries[i]
         spec = specs[terrain_name]
