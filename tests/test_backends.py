@@ -221,6 +221,29 @@ def test_mujoco_c_keeps_every_trace_the_mjx_engine_keeps():
     assert jax.tree_util.tree_leaves(s.ctrl_trace)[0].shape[:2] == (2, t)
 
 
+def test_a_recorded_walk_too_big_for_the_host_is_refused_at_its_first_step(monkeypatch):
+    """MuJoCo C keeps `record`'s traces in the host's memory; a walk whose traces cannot fit is refused one
+    walking step in (a 90 s step experiment at 1,024 terrains a row was killed by the host after 40 min). The
+    measured bytes an env are the kept traces' own (the joints, feet, controller trace, forces and pads; the
+    torso trace is made from the joints), three copies of them over the walk."""
+    import hexjax.sim.engines.c as c_engine
+
+    seen = []
+    monkeypatch.setattr(c_engine, "check_fits", lambda flag, n, per_env, what, host: seen.append((flag, n, per_env)))
+    terr = sample(get_terrain("flat"), jax.random.PRNGKey(2), 2)
+    run = lambda: rollout(ROBOT, terr, CTRL, CTRL.default_params(), 0.5, jax.random.PRNGKey(3), engine="c",
+                          nthread=1, physics=PhysicsConfig(slots_per_leg=0, torso_slots=0),
+                          config=RolloutConfig(record=True))
+    s = run()
+    kept = sum(np.asarray(x).nbytes for x in jax.tree_util.tree_leaves(
+        (s.qpos_trace, s.foot_trace, s.ctrl_trace, s.force_trace, s.tactile_trace)))
+    assert seen == [("envs", 2, c_engine.RECORD_COPIES * kept // 2)]
+    monkeypatch.undo()
+    monkeypatch.setattr(c_engine, "RECORD_COPIES", 10**9)  # as if each env's traces took more than the host has
+    with pytest.raises(ValueError, match=r"^envs=2: keeping every trace of a 25-control-step walk on MuJoCo C"):
+        run()
+
+
 def test_warp_overflow_bits_are_mujoco_warps():
     """The limit bits hexjax reads from MuJoCo Warp's overflow flags (written in hexjax so that reading them does
     not load Warp) are those of its `OverflowType`."""

@@ -41,6 +41,7 @@ from hexjax.sim import step as sim_step  # the phase and summarise on the module
 from hexjax.sim.config import PhysicsConfig, RolloutConfig, SensorConfig, settle_steps, substeps
 from hexjax.sim.engines.base import TRACES, Engine, host_cores
 from hexjax.sim.engines.c_models import _gains, _models, _template
+from hexjax.sim.memory import check_fits
 from hexjax.sim.model import actuator_forces, foot_positions, obs_from_sensordata
 from hexjax.sim.slip import slip
 from hexjax.sim.step import accumulate, init_acc, start_yaw
@@ -199,6 +200,8 @@ def rollout_c(robot: RobotSpec, terrain, controller, params, n_ctrl: int, keys, 
                     if busy[k] is not None:
                         busy[k].result()
                         lane.finish(i - 1)
+                        if config.record and c == 0 and k == 0 and i - 1 == n_settle:
+                            _check_record_memory(lane, b, n_ctrl)
                     if i < n_steps:
                         lane.control(i)
                         busy[k] = worker.submit(lane.physics, pool)
@@ -238,6 +241,20 @@ class _Run:
     ctrl_dt: float
     dt: float
     config: RolloutConfig
+
+
+# a walk's records are held three times over at its end: the per-step list, its stacked copy, the joined batch
+RECORD_COPIES = 3
+
+
+def _check_record_memory(lane: _Lane, n_envs: int, n_ctrl: int) -> None:
+    """One ValueError line seconds into the walk, instead of the host running out of memory at its end: the traces
+    `RolloutConfig.record` keeps for `n_envs` envs over `n_ctrl` control steps, measured from one lane's first
+    walking step, against the host's memory."""
+    step = sum(np.asarray(x).nbytes for x in jax.tree_util.tree_leaves(lane.recs[0]))
+    per_env = int(RECORD_COPIES * step / len(lane.idx) * n_ctrl)
+    check_fits("envs", n_envs, per_env, f"keeping every trace of a {n_ctrl}-control-step walk on MuJoCo C "
+               "(rollout.record)", host=True)
 
 
 def _traces(recs):
