@@ -304,7 +304,8 @@ def test_bad_params_raise_before_tracing():
     with pytest.raises(ValueError) as err:
         ctrl.validate_params(batch)
     msg = str(err.value)
-    assert msg == "cpg.elevated_clearance=0.04 at (300,) (shape (512,)): must be >= clearance=0.05 at (300,) (shape (512,))"
+    assert msg == ("cpg.elevated_clearance=0.04 at (300,) (shape (512,)): must be >= clearance=0.05 at (300,) "
+                   "(shape (512,))")
 
 
 def test_each_leg_has_its_own_converter_clearance_and_thresholds():
