@@ -145,10 +145,10 @@ class Problem:
                                 params_batched=params_batched)
 
     def eval_rollout(self):
-        """(model, fn) of the hard evaluation rollout on `eval_physics()`: with `eval_engine: mjx` MJX's, compiled
-        once per machine (a kept program); with 'certified' the fastest certified engine's (`certified_rollout`,
-        model None)."""
-        if self.cfg.eval_engine == "certified":
+        """(model, fn) of the hard evaluation rollout on `eval_physics()` on the judge's engine (`TuneConfig.judge`):
+        MJX's, compiled once per machine (a kept program); an engine whose programs are not kept (the certified
+        ones, `eval_engine: certified`) through `certified_rollout` (model None)."""
+        if not self.cfg.judge().engine.keeps_programs:
             return None, lambda model, params, terr, keys: self.certified_rollout(params, terr, keys)
         return rollout_function(self.robot, self.eval_ctrl, self.duration, physics=self.eval_physics(), kept=True)
 
@@ -340,7 +340,7 @@ def evaluate_held_out(problem: Problem, u, fn=None, model=None, which: str = "he
         model, fn = problem.eval_rollout()
     terr, keys = problem.eval_batch(which)
     params = problem.space.apply(u, problem.eval_params0)
-    if problem.cfg.eval_engine == "certified":  # its engines check the params as a user's: an iterate out of the
+    if not problem.cfg.judge().engine.keeps_programs:  # `rollout` checks the params as a user's: an iterate out of the
         try:  # controller's domain (one the space's per-field bounds allow) is judged the worst, and says why
             problem.eval_ctrl.validate_params(params)
         except ValueError as err:

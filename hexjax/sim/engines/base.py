@@ -57,7 +57,8 @@ class Engine:
     `validated`'s settings (`hexjax.experiments.runner.check_batch_memory` sizes a batch by it);
     grad_bytes_per_env_step: for an engine with `GRADIENTS`, the memory of the windowed value-and-gradient
     program per env and control step, as measured by `hexjax bench --grad` (a gradient batch is sized by it
-    before anything compiles: `hexjax.sim.memory`)."""
+    before anything compiles: `hexjax.sim.memory`); keeps_programs: whether its compiled rollouts export and are
+    kept on disk (`hexjax.sim.compiled`), so that a caller may hold one as a pure function."""
 
     name: str
     title: str
@@ -69,6 +70,7 @@ class Engine:
     grad_bytes_per_env_step: Optional[int] = None
     package: Optional[str] = None
     install: str = ""
+    keeps_programs: bool = False
 
     @property
     def host_only(self) -> bool:
