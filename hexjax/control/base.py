@@ -32,6 +32,18 @@ from typing import Any, Mapping, Optional, Tuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
+
+
+def shown(v: np.ndarray, bad=None) -> str:
+    """A params field's value for a controller's error line: in full when small, else its first offending entry
+    (where `bad`, a mask of v's shape, marks one) with its index and the array's shape, so that a batch of params
+    (an evolution strategy's population on its terrains) reads in one line."""
+    if v.size <= 12:
+        return repr(v.tolist())
+    flat = np.ravel(np.broadcast_to(bad, v.shape)) if bad is not None else np.zeros(v.size, bool)
+    i = np.unravel_index(int(np.argmax(flat)), v.shape)
+    return f"{float(v[i]):.6g} at {tuple(int(k) for k in i)} (shape {v.shape})"
 
 
 def replace_fields(params, overrides: Mapping[str, Any], prefix: str):

@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from hexjax.control.base import Controller
+from hexjax.control.base import Controller, shown
 from hexjax.plan.support import torso_pitch_roll
 from hexjax.world.robot import RobotSpec, body_to_leg, leg_ik, neutral_feet_body
 
@@ -97,8 +97,9 @@ def check_open_ranges(prefix: str, params, checks) -> None:
     `checks`: {field: (lo, hi)}. Raises ValueError naming `prefix.field` and its value."""
     for f, (lo, hi) in checks.items():
         v = np.asarray(getattr(params, f))
-        if not np.all(np.isfinite(v)) or np.any(v <= lo) or np.any(v > hi):
-            raise ValueError(f"{prefix}.{f}={v.tolist()!r}: must be in ({lo}, {hi}]")
+        bad = ~np.isfinite(v) | (v <= lo) | (v > hi)
+        if np.any(bad):
+            raise ValueError(f"{prefix}.{f}={shown(v, bad)}: must be in ({lo}, {hi}]")
 
 
 class PatternClock(Controller):

@@ -45,6 +45,7 @@ import numpy as np
 from flax import struct
 
 from hexjax.control.base import Controller
+from hexjax.control.gait import check_open_ranges
 from hexjax.plan.motion import TRIPODS
 from hexjax.plan.support import (clamped_spline, foothold_candidates, foothold_plane, max_along, overlap_center,
                                  plane_pitch_roll, side_distances, torso_pitch_roll)
@@ -140,11 +141,8 @@ class SupportPlanController(Controller):
                              dem=dem)
 
     def validate_params(self, p: SupportParams) -> None:
-        for name, lo, hi in (("stride", 0.0, 0.2), ("phase_time", 0.05, 10.0), ("height", 0.02, 1.0),
-                             ("clearance", 0.0, 0.3), ("torso_margin", -1.0, 0.3), ("delta_s", 0.0, 0.3)):
-            v = np.asarray(getattr(p, name))
-            if not np.all(np.isfinite(v)) or np.any(v <= lo) or np.any(v > hi):
-                raise ValueError(f"support.{name}={v.tolist()!r}: must be in ({lo}, {hi}]")
+        check_open_ranges("support", p, {"stride": (0.0, 0.2), "phase_time": (0.05, 10.0), "height": (0.02, 1.0),
+                                         "clearance": (0.0, 0.3), "torso_margin": (-1.0, 0.3), "delta_s": (0.0, 0.3)})
         h = np.asarray(p.dem.heights)
         if h.ndim < 2 or min(h.shape[-2:]) < 3 or not np.all(np.isfinite(h)):
             raise ValueError(f"support.dem.heights shape={h.shape!r}: need a finite grid of at least 3 x 3 cells")

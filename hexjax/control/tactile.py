@@ -37,6 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from hexjax.control.base import shown
 from hexjax.control.gait import PatternClock, check_open_ranges
 from hexjax.control.gates import hard_gate, sigmoid_gate
 from hexjax.world.robot import N_LEGS, RobotSpec, body_to_leg, leg_ik, neutral_feet_body
@@ -124,8 +125,9 @@ class TactileGaitController(PatternClock):
                   "temperature": (0.0, 100.0)}
         check_open_ranges("tactile", params, checks)
         e = np.asarray(params.enable)
-        if not np.all((e >= 0) & (e <= 1)):
-            raise ValueError(f"tactile.enable={e.tolist()!r}: must be in [0, 1]")
+        bad = ~((e >= 0) & (e <= 1))
+        if np.any(bad):
+            raise ValueError(f"tactile.enable={shown(e, bad)}: must be in [0, 1]")
 
     def commanded_advance(self, params: TactileParams, t):
         """Body advance the gait commands by gait time t (s): the stroke ramps in over the first cycle

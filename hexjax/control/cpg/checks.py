@@ -4,19 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from hexjax.control.base import shown
 from hexjax.control.cpg.converter import converter_points
 from hexjax.control.cpg.params import CPGParams
 from hexjax.world.robot import N_LEGS, RobotSpec, leg_ik
-
-
-def _shown(v: np.ndarray, bad=None) -> str:
-    """A field's value for an error line: in full when small, else its first offending entry (where `bad`, a
-    mask of v's shape, marks one) with its index and the array's shape, so a batch of params reads in one line."""
-    if v.size <= 12:
-        return repr(v.tolist())
-    flat = np.ravel(np.broadcast_to(bad, v.shape)) if bad is not None else np.zeros(v.size, bool)
-    i = np.unravel_index(int(np.argmax(flat)), v.shape)
-    return f"{float(v[i]):.6g} at {tuple(int(k) for k in i)} (shape {v.shape})"
 
 
 def check_params(robot: RobotSpec, stance_radial: float, p: CPGParams) -> None:
@@ -36,29 +27,29 @@ def check_params(robot: RobotSpec, stance_radial: float, p: CPGParams) -> None:
         v = arr(f)
         bad = ~np.isfinite(v) | (v <= 0)
         if np.any(bad):
-            raise ValueError(f"cpg.{f}={_shown(v, bad)}: must be finite and > 0")
+            raise ValueError(f"cpg.{f}={shown(v, bad)}: must be finite and > 0")
     for f in ("net.k", "f_contact", "search_amp"):
         v = arr(f)
         bad = ~np.isfinite(v) | (v < 0)
         if np.any(bad):
-            raise ValueError(f"cpg.{f}={_shown(v, bad)}: must be finite and >= 0")
+            raise ValueError(f"cpg.{f}={shown(v, bad)}: must be finite and >= 0")
     for f in ("feedback", "elevator", "searching", "smooth", "walk_on"):
         v = arr(f)
         bad = (v != 0) & (v != 1)
         if np.any(bad):
-            raise ValueError(f"cpg.{f}={_shown(v, bad)}: must be 0 (off) or 1 (on)")
+            raise ValueError(f"cpg.{f}={shown(v, bad)}: must be 0 (off) or 1 (on)")
     duty = arr("duty")
     if np.any(duty < 2):
-        raise ValueError(f"cpg.duty={_shown(duty, duty < 2)}: gait indicator gamma must be >= 2 (Eq. 16)")
+        raise ValueError(f"cpg.duty={shown(duty, duty < 2)}: gait indicator gamma must be >= 2 (Eq. 16)")
     slot = arr("leg_slot")
     if slot.shape[-1] != N_LEGS or np.any(slot < 0) or np.any(slot > np.asarray(duty)[..., None] - 1):
-        raise ValueError(f"cpg.leg_slot={_shown(slot)}: six slots in [0, duty - 1]")
+        raise ValueError(f"cpg.leg_slot={shown(slot)}: six slots in [0, duty - 1]")
     sigma = arr("search_sigma")
     if np.any(sigma < 1):
-        raise ValueError(f"cpg.search_sigma={_shown(sigma, sigma < 1)}: must be >= 1 (Eq. 15)")
+        raise ValueError(f"cpg.search_sigma={shown(sigma, sigma < 1)}: must be >= 1 (Eq. 15)")
     he, h = np.broadcast_arrays(arr("elevated_clearance"), arr("clearance"))
     if np.any(he < h):
-        raise ValueError(f"cpg.elevated_clearance={_shown(he, he < h)}: must be >= clearance={_shown(h, he < h)}")
+        raise ValueError(f"cpg.elevated_clearance={shown(he, he < h)}: must be >= clearance={shown(h, he < h)}")
     for f, shape in (("lc_trim", (2, 2, 3)), ("leg_trim", (N_LEGS, 2, 2, 3)), ("leg_clearance", (N_LEGS,)),
                      ("leg_f_scale", (N_LEGS, 3))):
         v = arr(f)
@@ -66,7 +57,7 @@ def check_params(robot: RobotSpec, stance_radial: float, p: CPGParams) -> None:
             raise ValueError(f"cpg.{f} shape={v.shape!r}: must be finite with shape {shape}")
     scale = arr("leg_f_scale")
     if np.any(scale <= 0):
-        raise ValueError(f"cpg.leg_f_scale={_shown(scale, scale <= 0)}: must be > 0 (a factor on f_contact)")
+        raise ValueError(f"cpg.leg_f_scale={shown(scale, scale <= 0)}: must be > 0 (a factor on f_contact)")
     # every converter point, at both clearances with each leg's offset, must be reachable (batched params: each
     # member)
     lead = np.broadcast_shapes(*(arr(f).shape for f in ("step_length", "clearance", "elevated_clearance",
